@@ -1,0 +1,13 @@
+"""granite-py: robust monocular visual odometry for flying robots (Wudenka et al., IROS 2021).
+
+Conventions used throughout the package:
+
+* Poses are 4x4 homogeneous matrices. ``T_a_b`` maps points from frame ``b`` into frame ``a``
+  (``p_a = T_a_b @ p_b``); ``T_w_c`` is the camera-to-world pose.
+* Cameras use the computer-vision convention: x right, y down, z forward (optical axis).
+* Timestamps are seconds (float64) in memory and in TUM files, integer nanoseconds in
+  EuRoC/ASL files.
+* Quaternions are Hamilton, stored ``(qx, qy, qz, qw)`` as in TUM files.
+"""
+
+__version__ = "0.1.0"

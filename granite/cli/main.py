@@ -1,0 +1,48 @@
+"""Entry point of the ``granite`` command.
+
+Subcommands are modules of :mod:`granite.cli` listed in :data:`SUBCOMMANDS`; each provides
+``add_parser(subparsers) -> argparse.ArgumentParser`` and ``run(args) -> int``. User errors
+(:class:`granite.errors.GraniteError`) are printed as one line on stderr with exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from granite.errors import GraniteError
+
+#: Subcommand modules, in the order ``--help`` lists them.
+SUBCOMMANDS: tuple[str, ...] = ("eval",)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="granite",
+        description="Robust monocular visual odometry for flying robots (granite-py).",
+    )
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in SUBCOMMANDS:
+        module = importlib.import_module(f"granite.cli.{name}_cmd")
+        sub = module.add_parser(subparsers)
+        sub.set_defaults(run=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.run(args) or 0)
+    except GraniteError as error:
+        print(f"granite {args.command}: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"granite {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
