@@ -1,0 +1,205 @@
+"""Two-view map initialisation (paper Sec. IV-C).
+
+For one keyframe ``k`` and the current frame ``c`` with tracked correspondences (unit bearing
+vectors in each camera frame), relative-motion hypotheses come from the 5-point essential matrix
+and from a homography, both in OpenCV's RANSAC on normalised image coordinates. The best
+hypothesis is compared with the rotation-only explanation; it must have more inliers and a
+smaller (truncated) sum of squared reprojection errors. The translation is then scaled so that
+the mean distance of the triangulated points from camera ``k`` equals ``mean_distance`` (ρ̄),
+and the initialisation is accepted when the parallax α = 2 atan(|t| / 2ρ̄) (Eq. 8) reaches the
+threshold.
+
+Convention: the result's ``R_c_k, t_c_k`` map points from frame ``k`` into frame ``c``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from granite.estimator.triangulation import triangulate_bearings
+
+
+@dataclass(frozen=True)
+class InitializationConfig:
+    """Settings of the map initialisation; defaults follow the reference implementation."""
+
+    min_inliers: int = 20
+    min_parallax_deg: float = 5.0  # threshold on α of Eq. 8
+    mean_distance: float = 2.0  # ρ̄: mean distance of the triangulated points after scaling
+    ransac_threshold_px: float = 1.0  # inlier threshold, in pixels of the (level-0) image
+    ransac_confidence: float = 0.999
+    min_bearing_z: float = 0.05  # bearings further than ~87° off-axis are not used here
+    seed: int = 0  # OpenCV's RANSAC seed (determinism)
+
+
+@dataclass
+class InitializationResult:
+    """Outcome of one initialisation attempt (``success`` says whether it may be used)."""
+
+    success: bool
+    reason: str
+    model: str = "none"  # "essential", "homography" or "none"
+    R_c_k: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t_c_k: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    points_k: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    parallax_deg: float = 0.0
+    num_inliers: int = 0
+    rotation_only_inliers: int = 0
+
+
+@dataclass
+class _Hypothesis:
+    model: str
+    R: np.ndarray
+    t: np.ndarray  # unit length
+    errors_sq: np.ndarray  # squared reprojection error per correspondence (normalised units)
+    points: np.ndarray
+    valid: np.ndarray
+
+
+def _project(points: np.ndarray) -> np.ndarray:
+    z = np.where(np.abs(points[:, 2]) > 1e-12, points[:, 2], 1e-12)
+    return points[:, :2] / z[:, None]
+
+
+def _evaluate(model: str, R, t, bk, bc, xk, xc) -> _Hypothesis:
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    t = t / max(np.linalg.norm(t), 1e-300)
+    points, valid = triangulate_bearings(R, t, bk, bc)
+    points_c = points @ R.T + t
+    valid &= (points[:, 2] > 0) & (points_c[:, 2] > 0)
+    err = np.sum((_project(points) - xk) ** 2, axis=1) + np.sum((_project(points_c) - xc) ** 2, axis=1)
+    err = np.where(valid, 0.5 * err, np.inf)
+    return _Hypothesis(model, R, t, err, points, valid)
+
+
+def _sampson_residuals(params: np.ndarray, xk: np.ndarray, xc: np.ndarray) -> np.ndarray:
+    R = Rotation.from_rotvec(params[:3]).as_matrix()
+    theta, phi = params[3], params[4]
+    t = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+    hk = np.column_stack([xk, np.ones(len(xk))])
+    hc = np.column_stack([xc, np.ones(len(xc))])
+    Ek = hk @ E.T  # E x_k
+    Etc = hc @ E  # E^T x_c
+    num = np.einsum("ij,ij->i", hc, Ek)
+    den = Ek[:, 0] ** 2 + Ek[:, 1] ** 2 + Etc[:, 0] ** 2 + Etc[:, 1] ** 2
+    return num / np.sqrt(den + 1e-300)
+
+
+def _refine(R: np.ndarray, t: np.ndarray, xk: np.ndarray, xc: np.ndarray, thr: float):
+    """Refine a relative pose on its inliers by minimising the Sampson error (robust, Huber)."""
+    t = t / np.linalg.norm(t)
+    x0 = np.concatenate(
+        [Rotation.from_matrix(R).as_rotvec(), [np.arccos(np.clip(t[2], -1, 1)), np.arctan2(t[1], t[0])]]
+    )
+    sol = least_squares(_sampson_residuals, x0, args=(xk, xc), loss="huber", f_scale=thr, max_nfev=50)
+    theta, phi = sol.x[3], sol.x[4]
+    t = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+    return Rotation.from_rotvec(sol.x[:3]).as_matrix(), t
+
+
+def _rotation_only(bk: np.ndarray, bc: np.ndarray, thr_sq: float, xc: np.ndarray) -> np.ndarray:
+    """Squared reprojection errors (frame c) of the best rotation-only explanation bc ~ R bk."""
+    inliers = np.ones(len(bk), dtype=bool)
+    err = np.full(len(bk), np.inf)
+    for _ in range(3):
+        if inliers.sum() < 3:
+            break
+        u, _, vt = np.linalg.svd(bc[inliers].T @ bk[inliers])
+        R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        rotated = bk @ R.T
+        front = rotated[:, 2] > 1e-6
+        err = np.where(front, np.sum((_project(rotated) - xc) ** 2, axis=1), np.inf)
+        inliers = err < thr_sq
+    return err
+
+
+def initialize_two_view(
+    bearings_k: np.ndarray,
+    bearings_c: np.ndarray,
+    focal_px: float,
+    config: InitializationConfig = InitializationConfig(),
+) -> InitializationResult:
+    """Try to initialise the map from correspondences between keyframe ``k`` and frame ``c``.
+
+    ``bearings_k``, ``bearings_c``: (N, 3) unit bearings of the same tracks; ``focal_px``: the
+    camera's focal length in pixels, converting the pixel threshold to normalised units.
+    """
+    bk = np.asarray(bearings_k, dtype=np.float64)
+    bc = np.asarray(bearings_c, dtype=np.float64)
+    n_all = len(bk)
+    usable = (bk[:, 2] > config.min_bearing_z) & (bc[:, 2] > config.min_bearing_z)
+    usable &= np.all(np.isfinite(bk), axis=1) & np.all(np.isfinite(bc), axis=1)
+    if usable.sum() < max(config.min_inliers, 8):
+        return InitializationResult(False, f"only {int(usable.sum())} usable correspondences")
+    idx = np.flatnonzero(usable)
+    bk, bc = bk[idx], bc[idx]
+    xk, xc = _project(bk), _project(bc)
+    thr = config.ransac_threshold_px / focal_px
+    thr_sq = thr * thr
+    cv2.setRNGSeed(config.seed)
+
+    hypotheses: list[_Hypothesis] = []
+    E, _ = cv2.findEssentialMat(
+        xk, xc, np.eye(3), method=cv2.RANSAC, prob=config.ransac_confidence, threshold=thr
+    )
+    if E is not None and E.shape[0] >= 3:
+        for i in range(0, E.shape[0], 3):  # several solutions may be stacked
+            _, R, t, _ = cv2.recoverPose(E[i : i + 3], xk, xc, np.eye(3))
+            hypotheses.append(_evaluate("essential", R, t, bk, bc, xk, xc))
+    H, _ = cv2.findHomography(xk, xc, cv2.RANSAC, thr)
+    if H is not None:
+        _, Rs, ts, _ = cv2.decomposeHomographyMat(H, np.eye(3))
+        for R, t in zip(Rs, ts):
+            if np.linalg.norm(t) > 1e-9:
+                hypotheses.append(_evaluate("homography", R, t, bk, bc, xk, xc))
+    if not hypotheses:
+        return InitializationResult(False, "no relative-motion hypothesis")
+
+    def score(h: _Hypothesis) -> float:
+        return float(np.sum(np.minimum(h.errors_sq, thr_sq)))
+
+    best = min(hypotheses, key=score)
+    best_inliers = best.errors_sq < thr_sq
+    if best_inliers.sum() >= 8:  # nonlinear refinement on the inliers, kept if it scores better
+        R, t = _refine(best.R, best.t, xk[best_inliers], xc[best_inliers], thr)
+        refined = _evaluate(best.model, R, t, bk, bc, xk, xc)
+        if score(refined) <= score(best):
+            best = refined
+            best_inliers = best.errors_sq < thr_sq
+    rot_err = _rotation_only(bk, bc, thr_sq, xc)
+    rot_inliers = int(np.sum(rot_err < thr_sq))
+    n_in = int(best_inliers.sum())
+    result = InitializationResult(
+        False, "", best.model, num_inliers=n_in, rotation_only_inliers=rot_inliers
+    )
+    if n_in < config.min_inliers:
+        result.reason = f"{n_in} inliers < {config.min_inliers}"
+        return result
+    if not (n_in > rot_inliers and score(best) < float(np.sum(np.minimum(rot_err, thr_sq)))):
+        result.reason = "rotation-only motion explains the correspondences as well"
+        return result
+
+    distances = np.linalg.norm(best.points[best_inliers], axis=1)
+    scale = config.mean_distance / float(np.mean(distances))
+    t_scaled = best.t * scale
+    parallax = np.degrees(2.0 * np.arctan(np.linalg.norm(t_scaled) / (2.0 * config.mean_distance)))
+
+    inliers_all = np.zeros(n_all, dtype=bool)
+    inliers_all[idx[best_inliers]] = True
+    points_all = np.zeros((n_all, 3))
+    points_all[idx] = best.points * scale
+    result.R_c_k, result.t_c_k = best.R, t_scaled
+    result.inliers, result.points_k, result.parallax_deg = inliers_all, points_all, float(parallax)
+    if parallax < config.min_parallax_deg:
+        result.reason = f"parallax {parallax:.2f} deg < {config.min_parallax_deg} deg"
+        return result
+    result.success, result.reason = True, "ok"
+    return result
