@@ -1,0 +1,126 @@
+"""``granite eval``: compare an estimated trajectory with the ground truth."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from granite.errors import InputError
+
+DESCRIPTION = """\
+Evaluate an estimated trajectory against the ground truth, as in the paper (Sec. VI):
+
+  ATE    RMSE of the position error after aligning every sub-map separately to the
+         ground truth (Sim(3) by default, as needed for monocular scale ambiguity).
+  RPE    RMS of the scale-free relative pose error over DELTA seconds (paper Eq. 18-20):
+         only the direction of each relative motion counts; the first DELTA seconds and
+         pairs spanning two sub-maps are excluded.
+  tracking percentage
+         longest continuously tracked section (one sub-map) / estimate duration.
+  restarts
+         number of sub-map changes (tracking failures).
+
+The ground truth is linearly interpolated (slerp for rotations) at the estimate's
+timestamps. Errors are in ground-truth units (metres)."""
+
+EPILOG = """\
+file formats:
+  EST  TUM file: 't tx ty tz qx qy qz qw [submap]' per line (seconds, T_w_c,
+       Hamilton quaternion; optional 9th column = integer sub-map index).
+  GT   TUM file, or EuRoC ground-truth CSV ('timestamp [ns], p xyz, q wxyz, ...'),
+       detected from the content. EuRoC poses are body (IMU) poses; pass --calib to
+       convert them to camera poses with T_imu_cam.
+
+examples:
+  granite eval --est traj.tum --gt groundtruth.tum
+  granite eval --est traj.tum --gt mav0/state_groundtruth_estimate0/data.csv \\
+               --calib calib.json --delta 4 --json"""
+
+
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds: {text!r}")
+    return value
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    parser = subparsers.add_parser(
+        "eval",
+        help="evaluate a trajectory (ATE, paper RPE, tracking percentage, restarts)",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--est", required=True, type=Path, metavar="EST",
+                        help="estimated trajectory (TUM, optional 9th sub-map column)")
+    parser.add_argument("--gt", required=True, type=Path, metavar="GT",
+                        help="ground truth (TUM file or EuRoC ground-truth CSV)")
+    parser.add_argument("--delta", type=_positive_seconds, default=4.0, metavar="SECONDS",
+                        help="RPE time offset in seconds (default: 4, as in the paper)")
+    parser.add_argument("--align", choices=("sim3", "se3", "none"), default="sim3",
+                        help="ATE alignment per sub-map (default: sim3)")
+    parser.add_argument("--calib", type=Path, metavar="CALIB",
+                        help="Basalt calib.json whose T_imu_cam converts EuRoC body ground "
+                             "truth to camera poses (ignored for TUM ground truth)")
+    parser.add_argument("--json", action="store_true",
+                        help="print exactly one JSON object instead of the table")
+    return parser
+
+
+def _fmt(value: float | None, unit: str = "", digits: int = 6) -> str:
+    return "n/a" if value is None else f"{value:.{digits}f}{unit}"
+
+
+def format_table(result: dict[str, Any], est: Path, gt: Path) -> str:
+    """Human-readable summary of :meth:`EvaluationResult.to_dict`."""
+    r = result
+    scales = ", ".join(f"{k}: {v:.6g}" for k, v in r["submap_scales"].items())
+    ratio = r["ate_over_path_length"]
+    rows = [
+        ("estimate", f"{est} ({r['num_poses']} poses, {r['restarts'] + 1} sub-map runs)"),
+        ("ground truth", str(gt)),
+        (f"ATE RMSE ({r['align']}, per sub-map)", _fmt(r["ate_rmse"], " m")),
+        ("ATE mean / median / max",
+         f"{_fmt(r['ate_mean'])} / {_fmt(r['ate_median'])} / {_fmt(r['ate_max'])} m"),
+        ("ATE poses", str(r["num_ate_poses"])),
+        (f"RPE RMSE (delta {r['delta']:g} s)", _fmt(r["rpe_rmse"], " m")),
+        ("RPE pairs", f"{r['num_rpe_pairs']} (skipped: {r['rpe_skipped_static']} static, "
+                      f"{r['rpe_skipped_submap']} across sub-maps, "
+                      f"{r['rpe_skipped_no_gt']} outside ground truth)"),
+        ("tracking percentage", f"{r['tracking_percentage']:.1f} %"),
+        ("restarts", str(r["restarts"])),
+        ("path length (ground truth)", _fmt(r["path_length"], " m", 3)),
+        ("ATE / path length", "n/a" if ratio is None else f"{100 * ratio:.3f} %"),
+        ("sub-map scales", scales or "-"),
+    ]
+    rows += [(f"skipped sub-map {k}", v) for k, v in r["skipped_submaps"].items()]
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
+
+
+def run(args: argparse.Namespace) -> int:
+    from granite.evaluation import evaluate
+    from granite.io import read_calibration, read_trajectory
+
+    T_body_cam = read_calibration(args.calib).T_imu_cam if args.calib is not None else None
+    est = read_trajectory(args.est)
+    gt = read_trajectory(args.gt, T_body_cam)
+    try:
+        result = evaluate(est, gt, delta=args.delta, align=args.align).to_dict()
+    except InputError as error:
+        if error.path is None:  # name the estimate in errors of the pure algorithms
+            raise InputError(error.message, args.est) from None
+        raise
+    if args.json:
+        result = {"estimate": str(args.est), "ground_truth": str(args.gt), **result}
+        print(json.dumps(result, allow_nan=False))
+    else:
+        print(format_table(result, args.est, args.gt))
+    return 0
