@@ -49,3 +49,48 @@ def render_plane(texture: np.ndarray, metres_per_pixel: float, T_w_c: np.ndarray
     T_c_w = se3_inverse(T_w_c)
     H = K @ np.column_stack([T_c_w[:3, 0], T_c_w[:3, 1], T_c_w[:3, 3]]) @ A
     return cv2.warpPerspective(texture, H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def default_flight(n: int, rate: float = 20.0):
+    """Timestamps and poses of a smooth oblique flight over the plane (about 2 m/s, 10 m up)."""
+    ts = np.arange(n) / rate
+    poses = np.array(
+        [look_down_pose([2.0 * t, 0.5 * np.sin(t), 10.0 + 0.5 * t], yaw=0.1 * t, pitch_deg=15) for t in ts]
+    )
+    return ts, poses
+
+
+def write_planar_dataset(root, timestamps, poses, size=(320, 240), focal=200.0, seed=0, images=None):
+    """Write a test-bench-style dataset (EuRoC layout, calib.json, groundtruth.tum) of the
+    textured plane seen from ``poses``; ``images`` may replace individual images (index->array
+    or None to omit the image file but keep its row)."""
+    from pathlib import Path
+
+    from granite.io import Calibration, write_calibration, write_euroc_image_list, write_tum
+    from granite.trajectory import Trajectory
+
+    root = Path(root)
+    data = root / "mav0" / "cam0" / "data"
+    data.mkdir(parents=True, exist_ok=True)
+    w, h = size
+    K = np.array([[focal, 0, (w - 1) / 2], [0, focal, (h - 1) / 2], [0, 0, 1.0]])
+    texture = make_texture(2048, seed)
+    ns = np.round(np.asarray(timestamps) * 1e9).astype(np.int64) + 1_000_000_000
+    names = []
+    for i, (stamp, T) in enumerate(zip(ns, poses)):
+        name = f"{stamp}.png"
+        names.append(name)
+        image = render_plane(texture, 0.02, T, K, (w, h))
+        if images is not None and i in images:
+            image = images[i]
+            if image is None:
+                continue
+            if isinstance(image, bytes):
+                (data / name).write_bytes(image)
+                continue
+        cv2.imwrite(str(data / name), image)
+    write_euroc_image_list(root / "mav0" / "cam0" / "data.csv", ns, names)
+    intr = {"fx": focal, "fy": focal, "cx": (w - 1) / 2, "cy": (h - 1) / 2}
+    write_calibration(root / "calib.json", Calibration("pinhole", intr, w, h))
+    write_tum(root / "groundtruth.tum", Trajectory(ns / 1e9, poses))
+    return root
