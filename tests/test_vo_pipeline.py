@@ -1,0 +1,122 @@
+"""End-to-end VO on exact synthetic image sequences of a textured plane (no Blender).
+
+Ground truth comes from the generator, not from the code under test.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from granite.cli.main import main
+from granite.estimator.config import VoConfig
+from granite.estimator.runner import run_vo
+from granite.evaluation import evaluate
+from granite.io import open_dataset
+from planar_scene import default_flight, look_down_pose, write_planar_dataset
+
+
+@pytest.fixture(scope="module")
+def flight_dataset(tmp_path_factory):
+    ts, poses = default_flight(100)
+    return write_planar_dataset(tmp_path_factory.mktemp("flight"), ts, poses)
+
+
+def _check_no_nan(result):
+    assert np.all(np.isfinite(result.trajectory.poses))
+
+
+def test_smooth_flight_is_tracked_without_restart(flight_dataset):
+    dataset = open_dataset(flight_dataset)
+    result = run_vo(dataset, VoConfig(), progress=False)
+    _check_no_nan(result)
+    ev = evaluate(result.trajectory, dataset.ground_truth, delta=1.0)
+    assert ev.restarts == 0
+    assert ev.tracking_percentage == pytest.approx(100.0)
+    states = [d.state for d in result.diagnostics]
+    assert "tracking" in states[:20], "the map should initialise within the first second"
+    # Direction error of 1 s relative motions (~2 m) and Sim(3) ATE, both against the generator.
+    assert ev.rpe.rmse < 0.1
+    assert ev.ate.rmse / ev.path_length < 0.05
+
+
+def test_run_cli_writes_outputs_and_no_nan(flight_dataset, tmp_path):
+    out = tmp_path / "run"
+    assert main(["run", str(flight_dataset), "--out", str(out), "--quiet", "--max-frames", "40"]) == 0
+    rows = np.loadtxt(out / "trajectory.tum")
+    assert rows.shape == (40, 9) and np.all(np.isfinite(rows))
+    text = (out / "diagnostics.csv").read_text()
+    assert "nan" not in text.lower()
+    assert len(text.strip().splitlines()) == 41
+    assert json.loads((out / "evaluation.json").read_text())["restarts"] == 0
+    assert VoConfig.load(out / "config.toml") == VoConfig()
+
+
+def test_static_start_blank_stretch_and_corrupt_image(tmp_path):
+    """Hover for 3 s, then fly; frames 70-74 blank, 90-91 over-exposed, frame 100 corrupt."""
+    n_static, n_move = 60, 80
+    ts = np.arange(n_static + n_move) / 20.0
+    poses = [look_down_pose([0.0, 0.0, 10.0], pitch_deg=15)] * n_static
+    poses += [look_down_pose([2.0 * t, 0.0, 10.0], pitch_deg=15) for t in ts[1 : n_move + 1] - 0.0]
+    poses = np.array(poses)
+    images = {i: np.zeros((240, 320), np.uint8) for i in range(70, 75)}
+    images.update({i: np.full((240, 320), 255, np.uint8) for i in (90, 91)})
+    images[100] = b"\x89PNG\r\n\x1a\n garbage"
+    root = write_planar_dataset(tmp_path / "ds", ts, poses, images=images)
+    dataset = open_dataset(root)
+    with pytest.warns(UserWarning):
+        result = run_vo(dataset, VoConfig(), progress=False)
+    _check_no_nan(result)
+    diags = result.diagnostics
+    assert [d.state for d in diags[70:75]] == ["skipped"] * 5
+    assert diags[100].state == "skipped"
+    assert {i for i, _ in result.skipped} == {70, 71, 72, 73, 74, 90, 91, 100}
+    assert all(d.state == "init" for d in diags[:n_static]), "no map without parallax"
+    first_tracking = next(i for i, d in enumerate(diags) if d.state == "tracking")
+    assert n_static < first_tracking < n_static + 30
+    assert diags[-1].state == "tracking"
+
+
+def test_pure_rotation_before_translation_is_tracked(tmp_path):
+    """Rotate in place (yaw sweep of 40 degrees over 3 s), then translate."""
+    n_rot, n_move = 60, 60
+    ts = np.arange(n_rot + n_move) / 20.0
+    yaw = np.radians(40) * (1 - np.cos(np.pi * np.arange(n_rot) / (n_rot - 1))) / 2
+    poses = [look_down_pose([0.0, 0.0, 10.0], yaw=y, pitch_deg=20) for y in yaw]
+    poses += [look_down_pose([2.0 * k / 20.0, 0.0, 10.0], yaw=yaw[-1], pitch_deg=20) for k in range(1, n_move + 1)]
+    poses = np.array(poses)
+    root = write_planar_dataset(tmp_path / "rot", ts, poses)
+    dataset = open_dataset(root)
+    result = run_vo(dataset, VoConfig(), progress=False)
+    _check_no_nan(result)
+    est = result.trajectory.poses
+    # Rotation relative to the first frame during the sweep, against the ground truth.
+    errors = []
+    for k in range(n_rot):
+        R_est = est[0, :3, :3].T @ est[k, :3, :3]
+        R_gt = poses[0, :3, :3].T @ poses[k, :3, :3]
+        cos = (np.trace(R_est.T @ R_gt) - 1) / 2
+        errors.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    assert max(errors) < 1.0
+    assert all(d.state == "init" for d in result.diagnostics[:n_rot])
+    assert result.diagnostics[-1].state == "tracking"
+    assert result.restarts == 0
+
+
+def test_run_cli_bad_input(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not found" in err
+    ts, poses = default_flight(5)
+    root = write_planar_dataset(tmp_path / "ds", ts, poses)
+    (root / "calib.json").write_text((root / "calib.json").read_text().replace("320", "640"))
+    assert main(["run", str(root), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "does not match the calibration" in err and "Traceback" not in err
+    (root / "calib.json").unlink()
+    assert main(["run", str(root), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert "calib" in capsys.readouterr().err
