@@ -64,39 +64,58 @@ def load_config(args) -> VoConfig:
     return config
 
 
+def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None, spawn: bool = False,
+                delta: float = 1.0, max_frames: int | None = None, progress: bool = True):
+    """Run the VO on an opened dataset, write the run folder; returns (result, evaluation dict
+    or None)."""
+    records = []
+    view = None
+    if rerun or spawn:
+        from granite.visualization.run_view import LiveRunView
+
+        view = LiveRunView(dataset, rerun, spawn=spawn)
+
+    def on_frame(frame, output):
+        records.append((frame.index, output))
+        if view is not None:
+            view.log_frame(frame, output)
+
+    result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames)
+    write_run(out, result, config, {"dataset": str(dataset.root), "format": dataset.format})
+    write_landmarks(out / "landmarks.npz", records)
+    evaluation = None
+    if dataset.ground_truth is not None:
+        evaluation = evaluate(result.trajectory, dataset.ground_truth, delta=delta).to_dict()
+        atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=2) + "\n")
+    if view is not None:
+        view.finish(result, dataset.ground_truth)
+    return result, evaluation
+
+
+def summary_lines(result, evaluation: dict | None, delta: float) -> list[str]:
+    lines = [f"{len(result.diagnostics)} frames, {len(result.skipped)} skipped, {result.restarts} restarts, "
+             f"{len(result.keyframes)} keyframes"]
+    if evaluation is not None:
+        e = evaluation
+        frac = e["ate_over_path_length"]
+        rpe = "n/a" if e["rpe_rmse"] is None else f"{e['rpe_rmse']:.4f} m"
+        lines.append(
+            f"ATE (Sim3) {e['ate_rmse']:.4f} m"
+            + (f" ({100 * frac:.2f} % of {e['path_length']:.1f} m)" if frac is not None else "")
+            + f", RPE({delta:g} s) {rpe}, tracking {e['tracking_percentage']:.1f} %"
+        )
+    return lines
+
+
 def run(args) -> int:
     config = load_config(args)
     dataset = open_dataset(args.dataset, calib_path=args.calib)
-    records = []
-    logger = None
-    if args.rerun or args.spawn:
-        from granite.visualization.run_view import LiveRunView
-
-        logger = LiveRunView(dataset, args.rerun, spawn=args.spawn)
-
-    def on_frame(frame, out):
-        records.append((frame.index, out))
-        if logger is not None:
-            logger.log_frame(frame, out)
-
-    result = run_vo(dataset, config, progress=not args.quiet, on_frame=on_frame, max_frames=args.max_frames)
-    extra = {"dataset": str(args.dataset), "format": dataset.format}
-    write_run(args.out, result, config, extra)
-    write_landmarks(args.out / "landmarks.npz", records)
-    evaluation = None
-    if dataset.ground_truth is not None:
-        evaluation = evaluate(result.trajectory, dataset.ground_truth, delta=args.delta).to_dict()
-        atomic_write_text(args.out / "evaluation.json", json.dumps(evaluation, indent=2) + "\n")
-    if logger is not None:
-        logger.finish(result, dataset.ground_truth)
-    s = result
-    print(f"{len(s.diagnostics)} frames, {len(s.skipped)} skipped, {s.restarts} restarts, "
-          f"{len(s.keyframes)} keyframes -> {args.out}")
-    if evaluation is not None:
-        print(f"ATE (Sim3) {evaluation['ate_rmse']:.4f} m ({100 * evaluation['ate_over_path_length']:.2f} % of "
-              f"{evaluation['path_length']:.1f} m), RPE({args.delta:g} s) {evaluation['rpe_rmse']:.4f} m, "
-              f"tracking {evaluation['tracking_percentage']:.1f} %")
-    if s.interrupted:
+    result, evaluation = perform_run(dataset, config, args.out, args.rerun, args.spawn, args.delta,
+                                     args.max_frames, progress=not args.quiet)
+    for line in summary_lines(result, evaluation, args.delta):
+        print(line)
+    print(f"outputs: {args.out}")
+    if result.interrupted:
         print("interrupted: the outputs hold the frames processed so far", file=sys.stderr)
         return 130
     return 0
