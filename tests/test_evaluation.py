@@ -124,6 +124,11 @@ def test_per_submap_alignment_recovers_two_scales_exactly() -> None:
     assert res.scales[1] == pytest.approx(1.0 / 3.0, rel=1e-9)
     assert np.allclose(res.aligned.poses, gt.poses, atol=1e-8)
     assert np.array_equal(res.aligned.submap, sub)
+    # The per-sub-map similarity maps the estimate's positions onto the ground truth.
+    for sid, mask in ((0, a), (1, ~a)):
+        s, R, t_ = res.transforms[sid]
+        mapped = s * est_poses[mask, :3, 3] @ R.T + t_
+        assert np.allclose(mapped, gt.poses[mask, :3, 3], atol=1e-8)
     # Aligning both sub-maps with one similarity cannot explain two scales.
     assert ate(Trajectory(t, est_poses), gt, "sim3").rmse > 0.1
 

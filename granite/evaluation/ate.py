@@ -38,6 +38,8 @@ class AteResult:
         reference: the ground truth interpolated at the same timestamps.
         scales: per sub-map index, the alignment scale (1 for se3 / none).
         skipped_submaps: sub-map index -> reason it could not be aligned.
+        transforms: per sub-map index, the similarity ``(s, R, t)`` mapping estimate
+            positions into the ground-truth frame, ``x -> s R x + t``.
     """
 
     align: str
@@ -50,6 +52,7 @@ class AteResult:
     reference: Trajectory
     scales: dict[int, float] = field(default_factory=dict)
     skipped_submaps: dict[int, str] = field(default_factory=dict)
+    transforms: dict[int, tuple[float, np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     @property
     def num_poses(self) -> int:
@@ -75,11 +78,13 @@ def ate(est: Trajectory, gt: Trajectory, align: str = "sim3") -> AteResult:
     aligned = np.array(est_poses)
     keep = np.ones(indices.size, dtype=bool)
     scales: dict[int, float] = {}
+    transforms: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}
     skipped: dict[int, str] = {}
     for sid in np.unique(ids):
         mask = ids == sid
         if align == "none":
             scales[int(sid)] = 1.0
+            transforms[int(sid)] = (1.0, np.eye(3), np.zeros(3))
             continue
         try:
             s, R, t = umeyama_alignment(
@@ -90,6 +95,7 @@ def ate(est: Trajectory, gt: Trajectory, align: str = "sim3") -> AteResult:
             keep[mask] = False
             continue
         scales[int(sid)] = float(s)
+        transforms[int(sid)] = (float(s), R, t)
         aligned[mask] = align_poses(est_poses[mask], s, R, t)
     if not keep.any():
         reasons = "; ".join(f"sub-map {k}: {v}" for k, v in skipped.items())
@@ -108,4 +114,5 @@ def ate(est: Trajectory, gt: Trajectory, align: str = "sim3") -> AteResult:
         reference=Trajectory(times, gt_poses[keep]),
         scales=scales,
         skipped_submaps=skipped,
+        transforms=transforms,
     )
