@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from granite.errors import GraniteError
 
 #: Subcommand modules, in the order ``--help`` lists them.
-SUBCOMMANDS: tuple[str, ...] = ("demo", "run", "eval", "track")
+SUBCOMMANDS: tuple[str, ...] = ("demo", "run", "eval", "view", "track")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -9,7 +9,8 @@ import sys
 from pathlib import Path
 
 from granite.estimator.config import VoConfig
-from granite.estimator.runner import run_vo, write_landmarks, write_run
+from granite.estimator.records import FrameRecord, write_records
+from granite.estimator.runner import run_vo, write_run
 from granite.evaluation import evaluate
 from granite.io import atomic_write_text, open_dataset
 
@@ -68,27 +69,28 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
                 delta: float = 1.0, max_frames: int | None = None, progress: bool = True):
     """Run the VO on an opened dataset, write the run folder; returns (result, evaluation dict
     or None)."""
-    records = []
+    records: list[FrameRecord] = []
     view = None
     if rerun or spawn:
-        from granite.visualization.run_view import LiveRunView
+        from granite.visualization.run_view import RunView
 
-        view = LiveRunView(dataset, rerun, spawn=spawn)
+        view = RunView(f"granite-run-{dataset.name}", dataset.calibration, dataset.ground_truth, rerun, spawn)
 
     def on_frame(frame, output):
-        records.append((frame.index, output))
+        record = FrameRecord.from_output(frame.index, frame.timestamp, output)
+        records.append(record)
         if view is not None:
-            view.log_frame(frame, output)
+            view.log_frame(record, frame.image, output.diagnostics)
 
     result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames)
     write_run(out, result, config, {"dataset": str(dataset.root), "format": dataset.format})
-    write_landmarks(out / "landmarks.npz", records)
+    write_records(out / "landmarks.npz", records)
     evaluation = None
     if dataset.ground_truth is not None:
         evaluation = evaluate(result.trajectory, dataset.ground_truth, delta=delta).to_dict()
         atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=2) + "\n")
     if view is not None:
-        view.finish(result, dataset.ground_truth)
+        view.finish(result.trajectory)
     return result, evaluation
 
 

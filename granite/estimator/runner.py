@@ -7,9 +7,8 @@ Run folder (all files written atomically when the run ends or is interrupted):
                        the sub-map index (skipped frames repeat the last pose)
 ``diagnostics.csv``    one row per frame (see :mod:`granite.estimator.diagnostics`)
 ``keyframes.csv``      ``timestamp,frame_index,submap`` of every keyframe
-``landmarks.npz``      per-frame tracks with their landmark inverse distance (for
-                       ``granite view``): ``frame``, ``track_id``, ``u``, ``v``, ``level``,
-                       ``inverse_distance`` (NaN: not a landmark)
+``landmarks.npz``      per-frame tracks, window landmarks and keyframes for ``granite view``
+                       (see :mod:`granite.estimator.records`)
 ``config.toml``        the exact configuration used
 ``summary.json``       frame counts, skipped frames, restarts, timing
 =====================  ================================================================
@@ -29,7 +28,7 @@ from granite.errors import InputError
 from granite.estimator.config import VoConfig
 from granite.estimator.diagnostics import FrameDiagnostics, write_diagnostics
 from granite.estimator.vo import FrameOutput, MonocularVO
-from granite.io import Dataset, atomic_path, atomic_write_text, write_tum
+from granite.io import Dataset, atomic_write_text, write_tum
 from granite.trajectory import Trajectory
 
 
@@ -78,6 +77,7 @@ def run_vo(
     check_dataset(dataset)
     camera = dataset.calibration.camera()
     vo = MonocularVO(camera, config)
+    vo.export_landmarks = True  # window landmarks go into the run records
     times, poses, submaps, diags, skipped = [], [], [], [], []
     interrupted = False
     n = len(dataset) if max_frames is None else min(max_frames, len(dataset))
@@ -133,25 +133,3 @@ def write_run(out_dir: str | Path, result: RunResult, config: VoConfig, extra: d
         **(extra or {}),
     }
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
-
-
-def write_landmarks(path: str | Path, records: list[tuple[int, FrameOutput]]) -> None:
-    """Per-frame tracks with inverse distances (``landmarks.npz``)."""
-    frames, ids, uv, levels, inv = [], [], [], [], []
-    for index, out in records:
-        if out.tracks is None or len(out.tracks) == 0:
-            continue
-        n = len(out.tracks)
-        frames.append(np.full(n, index, np.int64))
-        ids.append(out.tracks.ids)
-        uv.append(out.tracks.positions)
-        levels.append(out.tracks.levels)
-        inv.append(out.track_inverse_distance)
-    cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape))
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as handle:
-            np.savez_compressed(
-                handle, frame=cat(frames, 0).astype(np.int64), track_id=cat(ids, 0).astype(np.int64),
-                u=cat(uv, (0, 2))[:, 0], v=cat(uv, (0, 2))[:, 1], level=cat(levels, 0).astype(np.int64),
-                inverse_distance=cat(inv, 0).astype(np.float64),
-            )

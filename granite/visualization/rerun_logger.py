@@ -57,12 +57,12 @@ class RerunLogger:
     """Logs one recording; either saved to ``rrd_path`` or streamed to a spawned viewer."""
 
     def __init__(self, name: str, rrd_path: str | Path | None = None, spawn: bool = False):
-        self.rec = rr.new_recording(application_id="granite", recording_id=name, spawn=spawn)
+        self.rec = rr.RecordingStream("granite", recording_id=name)
         if rrd_path is not None:
             Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
             self.rec.save(str(rrd_path), default_blueprint=default_blueprint())
-        elif spawn:
-            self.rec.send_blueprint(default_blueprint())
+        if spawn:
+            self.rec.spawn(default_blueprint=default_blueprint())
         self._t0: float | None = None
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 

@@ -1,9 +1,10 @@
-"""rerun view of a VO run: live while ``granite run`` processes frames, completed at the end.
+"""rerun view of a VO run, live while ``granite run`` processes frames or afterwards from a run
+folder (``granite view``); both go through :class:`RunView`.
 
-During the run each frame logs the image, the tracks coloured by inverse distance and the time
-series. When the run ends (or for a finished run folder, see :mod:`granite.cli.view_cmd`), the
-estimate is Sim(3)-aligned to the ground truth per sub-map and the aligned camera, keyframes
-and trajectory are logged for every frame on the same timeline.
+Per frame the image, the tracks coloured by inverse distance and the time series are logged as
+they come. When the run ends, the estimate is Sim(3)-aligned to the ground truth per sub-map
+(the paper's Fig. 3) and the aligned camera, the window's keyframes and landmarks and the
+aligned trajectory are logged for every frame on the same timeline.
 """
 
 from __future__ import annotations
@@ -13,71 +14,94 @@ from pathlib import Path
 import numpy as np
 
 from granite.errors import GraniteError
+from granite.estimator.diagnostics import FrameDiagnostics
+from granite.estimator.records import FrameRecord
 from granite.evaluation import ate
-from granite.visualization.rerun_logger import ESTIMATE_COLOR, GROUNDTRUTH_COLOR, KEYFRAME_COLOR, RerunLogger
+from granite.trajectory import Trajectory
+from granite.visualization.colors import inverse_distance_colors
+from granite.visualization.rerun_logger import (
+    ESTIMATE_COLOR,
+    GROUNDTRUTH_COLOR,
+    KEYFRAME_COLOR,
+    RerunLogger,
+)
 
 
-def aligned_poses(traj, ground_truth) -> np.ndarray:
-    """Estimate poses Sim(3)-aligned to the ground truth per sub-map; NaN where a pose could
-    not be aligned (outside the ground truth, or an unalignable sub-map). Unaligned without
-    ground truth."""
+def similarity_per_submap(traj: Trajectory, ground_truth: Trajectory | None) -> dict[int, tuple]:
+    """Sim(3) ``(s, R, t)`` per sub-map aligning the estimate to the ground truth (identity
+    without ground truth; sub-maps that cannot be aligned are missing)."""
+    ids = np.unique(traj.submap) if traj.submap is not None else np.array([0])
     if ground_truth is None:
-        return np.array(traj.poses)
-    out = np.full(traj.poses.shape, np.nan)
+        return {int(i): (1.0, np.eye(3), np.zeros(3)) for i in ids}
     try:
-        aligned = ate(traj, ground_truth, align="sim3").aligned
+        return ate(traj, ground_truth, align="sim3").transforms
     except GraniteError:
-        return out
-    index = {float(t): k for k, t in enumerate(traj.timestamps)}
-    for t, pose in zip(aligned.timestamps, aligned.poses):
-        out[index[float(t)]] = pose
-    return out
+        return {}
 
 
-class LiveRunView:
-    def __init__(self, dataset, rrd_path: str | Path | None, spawn: bool = False, name: str | None = None):
-        self.log = RerunLogger(name or f"granite-run-{dataset.name}", rrd_path, spawn)
-        calib = dataset.calibration
-        if calib is not None:
-            i = calib.intrinsics
-            self.log.log_camera_model(i["fx"], i["fy"], i["cx"], i["cy"], calib.width, calib.height)
-        if dataset.ground_truth is not None:
-            self.log.log_trajectory("world/groundtruth", dataset.ground_truth.positions, GROUNDTRUTH_COLOR)
-        self._keyframes: list[tuple[int, tuple[int, ...]]] = []
-        self._landmarks: list[tuple[int, np.ndarray, np.ndarray]] = []
-        self._timestamps: dict[int, float] = {}
+def _apply(sim, points: np.ndarray) -> np.ndarray:
+    s, R, t = sim
+    return s * points @ R.T + t
 
-    def log_frame(self, frame, out) -> None:
+
+class RunView:
+    """Builds the recording of one run (entity layout: :mod:`granite.visualization.rerun_logger`)."""
+
+    def __init__(self, name: str, calibration, ground_truth: Trajectory | None,
+                 rrd_path: str | Path | None = None, spawn: bool = False, d_max: float = 1.0):
+        self.log = RerunLogger(name, rrd_path, spawn)
+        self.d_max = d_max
+        if calibration is not None:
+            i = calibration.intrinsics
+            self.log.log_camera_model(i["fx"], i["fy"], i["cx"], i["cy"], calibration.width, calibration.height)
+        self.ground_truth = ground_truth
+        if ground_truth is not None:
+            self.log.log_trajectory("world/groundtruth", ground_truth.positions, GROUNDTRUTH_COLOR)
+        self._records: list[FrameRecord] = []
+
+    def log_frame(self, record: FrameRecord, image: np.ndarray | None, diag: FrameDiagnostics) -> None:
         log = self.log
-        log.set_frame(frame.index, frame.timestamp)
-        self._timestamps[frame.index] = frame.timestamp
-        if frame.image is not None:
-            log.log_image(frame.image)
-        if out.tracks is not None and len(out.tracks):
-            log.log_tracks(out.tracks.positions, out.tracks.levels, out.track_inverse_distance)
-        d = out.diagnostics
-        log.log_scalar("tracked_points", d.tracked_points)
-        log.log_scalar("finite_landmarks", d.finite_landmarks)
-        log.log_scalar("infinite_landmarks", d.infinite_landmarks)
-        log.log_scalar("keyframe", float(d.keyframe))
-        log.log_scalar("submap", d.submap)
-        if d.negative_entropy is not None:
-            log.log_scalar("negative_entropy", d.negative_entropy)
-        self._keyframes.append((frame.index, out.keyframe_ids))
+        log.set_frame(record.index, record.timestamp)
+        if image is not None:
+            log.log_image(image)
+        if len(record.track_ids):
+            log.log_tracks(record.track_uv, record.track_level, record.track_inverse_distance, self.d_max)
+        log.log_scalar("tracked_points", diag.tracked_points)
+        log.log_scalar("finite_landmarks", diag.finite_landmarks)
+        log.log_scalar("infinite_landmarks", diag.infinite_landmarks)
+        log.log_scalar("keyframe", float(diag.keyframe))
+        log.log_scalar("submap", diag.submap)
+        if diag.negative_entropy is not None:
+            log.log_scalar("negative_entropy", diag.negative_entropy)
+        self._records.append(record)
 
-    def finish(self, result, ground_truth) -> None:
-        """Log the aligned estimate for every frame and the aligned trajectory."""
-        traj = result.trajectory
-        poses = aligned_poses(traj, ground_truth)
-        index_of = {int(d.frame_index): k for k, d in enumerate(result.diagnostics)}
-        self.log.log_trajectory("world/estimate", poses[:, :3, 3], ESTIMATE_COLOR)
-        for frame_index, kf_ids in self._keyframes:
-            k = index_of.get(frame_index)
-            if k is None or not np.all(np.isfinite(poses[k])):
+    def finish(self, trajectory: Trajectory) -> None:
+        """Log the aligned 3D content of every frame, then flush."""
+        sims = similarity_per_submap(trajectory, self.ground_truth)
+        sub = trajectory.submap if trajectory.submap is not None else np.zeros(len(trajectory), np.int64)
+        row = {float(t): k for k, t in enumerate(trajectory.timestamps)}
+        positions = np.full((len(trajectory), 3), np.nan)
+        for k in range(len(trajectory)):
+            if int(sub[k]) in sims:
+                positions[k] = _apply(sims[int(sub[k])], trajectory.poses[k, :3, 3][None])[0]
+        self.log.log_trajectory("world/estimate", positions, ESTIMATE_COLOR)
+        index_row = {r.index: row.get(float(r.timestamp)) for r in self._records}
+        for record in self._records:
+            k = index_row[record.index]
+            if k is None or int(sub[k]) not in sims:
                 continue
-            self.log.set_frame(frame_index, float(traj.timestamps[k]))
-            self.log.log_camera_pose(poses[k])
-            kf_pos = [poses[index_of[f], :3, 3] for f in kf_ids if f in index_of]
-            if kf_pos:
-                self.log.log_points3d("world/keyframes", np.array(kf_pos), KEYFRAME_COLOR, radius=0.05)
+            sim = sims[int(sub[k])]
+            s, R, t = sim
+            T = np.eye(4)
+            T[:3, :3] = R @ trajectory.poses[k, :3, :3]
+            T[:3, 3] = positions[k]
+            self.log.set_frame(record.index, record.timestamp)
+            self.log.log_camera_pose(T)
+            kf_rows = [index_row.get(f) for f in record.keyframe_ids]
+            kf = np.array([positions[r] for r in kf_rows if r is not None and int(sub[r]) == int(sub[k])])
+            if len(kf):
+                self.log.log_points3d("world/keyframes", kf, KEYFRAME_COLOR, radius=0.08)
+            if len(record.landmarks_w):
+                colors = inverse_distance_colors(record.landmarks_inverse_distance / s, self.d_max)
+                self.log.log_points3d("world/landmarks", _apply(sim, record.landmarks_w), colors, radius=0.04)
         self.log.close()

@@ -1,0 +1,53 @@
+"""``granite view``: a rerun recording of a finished run, without re-running the VO."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from granite.errors import InputError
+from granite.estimator.diagnostics import read_diagnostics
+from granite.estimator.records import read_records
+from granite.io import open_dataset, read_tum
+from granite.visualization.run_view import RunView
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "view", help="make a rerun recording of a finished run folder",
+        description="Build a rerun recording from a run folder written by `granite run` (images are "
+        "read from the dataset recorded in summary.json, or --dataset). Entity layout: README.",
+    )
+    p.add_argument("run_dir", type=Path, help="run folder (output of granite run)")
+    p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="recording to write (default: RUN_DIR/recording.rrd)")
+    p.add_argument("--spawn", action="store_true", help="stream to a rerun viewer instead of a file")
+    p.add_argument("--dataset", type=Path, help="dataset folder (default: the one in summary.json)")
+    return p
+
+
+def run(args) -> int:
+    run_dir = args.run_dir
+    if not run_dir.is_dir():
+        raise InputError("run folder not found", run_dir)
+    summary_path = run_dir / "summary.json"
+    try:
+        summary = json.loads(summary_path.read_text())
+    except FileNotFoundError:
+        raise InputError("summary.json not found: not a granite run folder", run_dir) from None
+    except json.JSONDecodeError as error:
+        raise InputError(f"malformed JSON ({error})", summary_path) from None
+    dataset = open_dataset(args.dataset or summary.get("dataset", ""))
+    trajectory = read_tum(run_dir / "trajectory.tum")
+    diagnostics = read_diagnostics(run_dir / "diagnostics.csv")
+    records = read_records(run_dir / "landmarks.npz")
+    if not (len(trajectory) == len(diagnostics) == len(records)):
+        raise InputError("trajectory, diagnostics and records disagree on the number of frames", run_dir)
+    rrd = None if args.spawn and not args.rerun else (args.rerun or run_dir / "recording.rrd")
+    view = RunView(f"granite-view-{dataset.name}", dataset.calibration, dataset.ground_truth, rrd, args.spawn)
+    for record, diag in zip(records, diagnostics):
+        frame = dataset.frame(record.index)
+        view.log_frame(record, frame.image, diag)
+    view.finish(trajectory)
+    print(f"recording: {rrd}" if rrd else "streamed to the viewer")
+    return 0
