@@ -23,7 +23,7 @@ The main job, in one command:
   3. evaluation against the rendered ground truth -> OUT/run/evaluation.json
   4. OUT/report.md: scenario, run and evaluation summary
 
-Open the recording with `rerun OUT/recording.rrd` (or pass --spawn to watch live).
+Open the recording with `rerun OUT/recording.rrd`.
 """
 
 
@@ -39,7 +39,6 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, help="override the scenario's Cycles samples")
     p.add_argument("--config", type=Path, help="VO configuration (TOML)")
     p.add_argument("--delta", type=float, default=1.0, help="RPE delta in seconds (default: 1)")
-    p.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -90,7 +89,7 @@ def run(args) -> int:
         raise InputError("the rendered dataset has no ground truth", dataset_dir)
     config = VoConfig.load(args.config) if args.config else VoConfig()
     result, evaluation = perform_run(
-        dataset, config, args.out / "run", args.out / "recording.rrd", args.spawn, args.delta,
+        dataset, config, args.out / "run", args.out / "recording.rrd", False, args.delta,
         progress=not args.quiet,
     )
     write_report(args.out / "report.md", args, dataset, result, evaluation)

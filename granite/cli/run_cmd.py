@@ -48,8 +48,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="ablation †: detect corners on pyramid level 0 only")
     p.add_argument("--current-frame-keyframe", action="store_true",
                    help="ablation ‡: make the current (not the previous) frame the keyframe")
-    p.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save a rerun recording")
-    p.add_argument("--spawn", action="store_true", help="stream to a rerun viewer")
+    viz = p.add_mutually_exclusive_group()
+    viz.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save a rerun recording")
+    viz.add_argument("--spawn", action="store_true", help="stream live to a rerun viewer (needs a display)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 

@@ -54,14 +54,14 @@ def default_blueprint() -> rrb.Blueprint:
 
 
 class RerunLogger:
-    """Logs one recording; either saved to ``rrd_path`` or streamed to a spawned viewer."""
+    """Logs one recording, saved to ``rrd_path`` or (``spawn``) streamed to a new viewer."""
 
     def __init__(self, name: str, rrd_path: str | Path | None = None, spawn: bool = False):
         self.rec = rr.RecordingStream("granite", recording_id=name)
         if rrd_path is not None:
             Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
             self.rec.save(str(rrd_path), default_blueprint=default_blueprint())
-        if spawn:
+        elif spawn:
             self.rec.spawn(default_blueprint=default_blueprint())
         self._t0: float | None = None
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
