@@ -1,0 +1,35 @@
+"""Sliding-window bundle adjustment backend (paper Sec. IV, IV-B, IV-C; Basalt-style).
+
+Frames and units (docs/conventions.md): poses are ``T_w_c`` (4,4), camera x right / y down /
+z forward; pose increments are the decoupled twist ``[v, w]`` of paper Eq. 14; landmarks are
+a bearing in their host keyframe plus an inverse distance ``d >= 0`` (``d = 0``: at infinity).
+See ``docs/backend.md``.
+"""
+
+from granite.backend.config import BackendConfig
+from granite.backend.hessian import WindowHessian, marginal_information, marginalize_dense
+from granite.backend.landmarks import Landmark, LandmarkDatabase, Observation
+from granite.backend.priors import MargPrior, ScaleFix, pose_delta
+from granite.backend.window import (
+    FrameState,
+    MarginalizationReport,
+    OptimizeReport,
+    SlidingWindow,
+)
+
+__all__ = [
+    "BackendConfig",
+    "SlidingWindow",
+    "OptimizeReport",
+    "MarginalizationReport",
+    "FrameState",
+    "WindowHessian",
+    "MargPrior",
+    "ScaleFix",
+    "Landmark",
+    "LandmarkDatabase",
+    "Observation",
+    "marginalize_dense",
+    "marginal_information",
+    "pose_delta",
+]

@@ -1,0 +1,98 @@
+"""Configuration of the sliding-window bundle adjustment (paper Sec. IV, IV-B, IV-C).
+
+Defaults are those of the reference monocular configuration (shared/docs/algorithm-notes.md).
+Weights are information values in the units of the cost ``E = sum r^T W r`` with pixel
+residuals ``r``; poses are in map units (metres after the scale fix), inverse distances in
+1 / map units.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from granite.errors import ConfigError
+
+
+@dataclasses.dataclass(frozen=True)
+class BackendConfig:
+    """Parameters of :class:`granite.backend.SlidingWindow`.
+
+    Attributes:
+        obs_std_dev: pixel noise standard deviation sigma [px]; observation information is
+            ``huber_weight * 2**-level / sigma**2`` (paper Eq. 5 and 7).
+        huber_threshold: Huber threshold on the residual norm [px].
+        infinite_obs_factor: extra information factor of observations of points at infinity
+            (inverse distance exactly 0).
+        no_motion_weight: weight of the prior ``|t_w_t - t_w_h|^2`` tying the translations of two
+            frames connected only by landmarks with d = 0 (paper Sec. IV-B) [1/map unit^2].
+        initial_pose_weight: weight of the gauge prior on the first pose of an empty window,
+            ``w * I_6`` on the twist ``[v, w]``; 0 disables it.
+        scale_fix_weight: default weight of the scale-fix residual of paper Eq. 9.
+        max_inv_dist: inverse distances are clamped to ``[0, max_inv_dist]`` after every step.
+        max_iterations: Gauss-Newton iterations per :meth:`SlidingWindow.optimize` call.
+        step_tolerance: stop when the largest pose increment component is below this.
+        outlier_threshold: reprojection error [px] above which an observation is an outlier.
+        landmark_damping: added to the diagonal of each landmark's 3x3 block before it is
+            eliminated, so that an unobservable inverse distance (no baseline) gives a zero step
+            instead of a singular system. It damps the step only, it is not part of the cost.
+        use_lm: Levenberg-Marquardt (steps are accepted only when the cost decreases) instead
+            of plain Gauss-Newton.
+        lm_lambda_init, lm_lambda_min, lm_lambda_max: LM damping, ``H + lambda diag(H)``.
+        max_frames, max_keyframes: window size (3 recent frames + 11 keyframes); used by
+            :meth:`SlidingWindow.frames_to_marginalize`.
+    """
+
+    obs_std_dev: float = 0.5
+    huber_threshold: float = 1.0
+    infinite_obs_factor: float = 0.01
+    no_motion_weight: float = 1e-12
+    initial_pose_weight: float = 1e8
+    scale_fix_weight: float = 1e8
+    max_inv_dist: float = 5.0
+    max_iterations: int = 7
+    step_tolerance: float = 1e-6
+    outlier_threshold: float = 3.0
+    landmark_damping: float = 1e-9
+    use_lm: bool = False
+    lm_lambda_init: float = 1e-4
+    lm_lambda_min: float = 1e-12
+    lm_lambda_max: float = 1e4
+    max_frames: int = 3
+    max_keyframes: int = 11
+
+    def __post_init__(self) -> None:
+        positive = ("obs_std_dev", "huber_threshold", "max_inv_dist", "outlier_threshold",
+                    "lm_lambda_init", "lm_lambda_min", "lm_lambda_max")
+        non_negative = ("infinite_obs_factor", "no_motion_weight", "initial_pose_weight",
+                        "scale_fix_weight", "step_tolerance", "landmark_damping")
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"backend: {name} must be a positive number, got {value!r}")
+        for name in non_negative:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ConfigError(f"backend: {name} must be a number >= 0, got {value!r}")
+        for name in ("max_iterations", "max_frames", "max_keyframes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"backend: {name} must be an integer >= 1, got {value!r}")
+        if not isinstance(self.use_lm, bool):
+            raise ConfigError(f"backend: use_lm must be true or false, got {self.use_lm!r}")
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> BackendConfig:
+        """Build from a mapping (e.g. a parsed config file section); unknown keys and bad
+        values raise :class:`granite.errors.ConfigError`."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(f"backend: unknown key(s) {', '.join(unknown)}; "
+                              f"known: {', '.join(sorted(known))}")
+        return cls(**dict(values))
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)

@@ -1,0 +1,242 @@
+"""Backend derivatives against finite differences and dense, independently assembled systems."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from granite.backend import BackendConfig
+from granite.backend.landmarks import (
+    bearing_from_stereo,
+    bearings_from_stereo,
+    stereo_from_bearing,
+)
+from granite.backend.priors import ScaleFix, no_motion_terms
+from granite.backend.reprojection import linearize, reprojection_residuals
+from granite.backend.schur import back_substitute, schur_reduce
+from granite.backend.synthetic import build_window, make_scene
+from granite.camera import make_camera
+from granite.geometry import decoupled_increment
+
+CAMERAS = {
+    "pinhole": ("pinhole", {"fx": 500.0, "fy": 480.0, "cx": 319.5, "cy": 239.5}),
+    "kb4": ("kb4", {"fx": 380.0, "fy": 381.0, "cx": 320.0, "cy": 240.0,
+                    "k1": 0.01, "k2": -0.005, "k3": 0.002, "k4": -0.0005}),
+    "ds": ("ds", {"fx": 350.0, "fy": 352.0, "cx": 321.0, "cy": 239.0,
+                  "xi": -0.2, "alpha": 0.6}),
+}
+
+
+def _window(camera_name: str = "pinhole", seed: int = 0, **kw):
+    scene = make_scene(num_frames=4, num_points=25, seed=seed)
+    if camera_name != "pinhole":
+        # re-observe the same geometry through another model (pixels from projection)
+        scene.camera = make_camera(*CAMERAS[camera_name], 640, 480)
+    win = build_window(scene, kw.pop("config", None), pose_noise=(0.02, 0.01),
+                       bearing_noise=0.003, inv_dist_noise=0.3, seed=seed + 1)
+    return scene, win
+
+
+def _perturbed(poses, idx, c, eps):
+    xi = np.zeros(6)
+    xi[c] = eps
+    out = poses.copy()
+    out[idx] = decoupled_increment(np.ascontiguousarray(poses[idx]), xi)
+    return out
+
+
+def test_stereographic_roundtrip_and_jacobian():
+    rng = np.random.default_rng(0)
+    b = rng.normal(size=(50, 3))
+    b[:, 2] = np.abs(b[:, 2]) - 0.5  # include bearings pointing sideways/backwards
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    s = stereo_from_bearing(b)
+    np.testing.assert_allclose(bearings_from_stereo(s), b, atol=1e-12)
+    eps = 1e-6
+    for si in s[:10]:
+        _, J = bearing_from_stereo(si)
+        for c in range(2):
+            d = np.zeros(2)
+            d[c] = eps
+            num = (bearing_from_stereo(si + d)[0] - bearing_from_stereo(si - d)[0]) / (2 * eps)
+            np.testing.assert_allclose(J[:, c], num, atol=1e-8)
+
+
+@pytest.mark.parametrize("camera_name", ["pinhole", "kb4", "ds"])
+def test_reprojection_jacobians_match_finite_differences(camera_name):
+    _, win = _window(camera_name)
+    problem = win._problem()
+    pk = problem.packed
+    # one point at infinity: its inverse-distance column must be zero, pose rotations still act
+    pk.lm_d[3] = 0.0
+    lin = linearize(win.camera, pk, problem.poses, problem.poses, 1.0, 1e9, 1.0)
+    assert np.all(lin.valid)
+    eps = 1e-6
+    K = len(problem.frame_ids)
+    num_pose = np.zeros((pk.num_observations, 2, K, 6))
+    for idx in range(K):
+        for c in range(6):
+            rp, _ = reprojection_residuals(win.camera, pk, _perturbed(problem.poses, idx, c, eps))
+            rm, _ = reprojection_residuals(win.camera, pk, _perturbed(problem.poses, idx, c, -eps))
+            num_pose[:, :, idx, c] = (rp - rm) / (2 * eps)
+    host = pk.lm_host[pk.obs_lm]
+    for k in range(pk.num_observations):
+        h, t = host[k], pk.obs_tgt[k]
+        if h == t:
+            assert np.all(lin.J_h[k] == 0) and np.all(lin.J_t[k] == 0)
+            continue
+        scale = np.abs(num_pose[k]).max() + 1.0
+        np.testing.assert_allclose(lin.J_h[k], num_pose[k, :, h], atol=1e-5 * scale)
+        np.testing.assert_allclose(lin.J_t[k], num_pose[k, :, t], atol=1e-5 * scale)
+    s0, d0 = pk.lm_s.copy(), pk.lm_d.copy()
+    for c in range(3):
+        rs = []
+        for sign in (1, -1):
+            pk.lm_s[:], pk.lm_d[:] = s0, d0
+            if c < 2:
+                pk.lm_s[:, c] += sign * eps
+            else:
+                pk.lm_d[:] += sign * eps
+            rs.append(reprojection_residuals(win.camera, pk, problem.poses)[0])
+        num = (rs[0] - rs[1]) / (2 * eps)
+        pk.lm_s[:], pk.lm_d[:] = s0, d0
+        for k in range(pk.num_observations):
+            if c == 2 and pk.obs_lm[k] == 3:
+                assert np.all(lin.J_l[k, :, 2] == 0.0)  # d = 0 stays at infinity
+                continue
+            np.testing.assert_allclose(lin.J_l[k, :, c], num[k],
+                                       atol=1e-5 * (np.abs(num[k]).max() + 1))
+    # at d = 0 the translation does not act on the residual
+    inf_obs = np.flatnonzero((pk.obs_lm == 3) & (host != pk.obs_tgt))
+    assert inf_obs.size > 0
+    assert np.all(lin.J_h[inf_obs][:, :, :3] == 0) and np.all(lin.J_t[inf_obs][:, :, :3] == 0)
+
+
+def test_first_estimate_jacobians_use_linearisation_poses():
+    _, win = _window()
+    problem = win._problem()
+    pk = problem.packed
+    poses_lin = problem.poses.copy()
+    moved = problem.poses.copy()
+    moved[1] = decoupled_increment(moved[1], np.array([0.01, -0.02, 0.01, 0.003, 0.0, -0.002]))
+    at_lin = linearize(win.camera, pk, poses_lin, poses_lin, 4.0, 1e9, 1.0)
+    J_h, J_t, J_l = at_lin.J_h.copy(), at_lin.J_t.copy(), at_lin.J_l.copy()
+    fej = linearize(win.camera, pk, moved, poses_lin, 4.0, 1e9, 1.0)
+    np.testing.assert_array_equal(fej.J_h, J_h)
+    np.testing.assert_array_equal(fej.J_t, J_t)
+    np.testing.assert_array_equal(fej.J_l, J_l)
+    res, _ = reprojection_residuals(win.camera, pk, moved)
+    np.testing.assert_allclose(fej.r, res, atol=1e-12)
+
+
+def _dense_problem(win):
+    """Dense Jacobian (finite differences) of all weighted residuals over [poses, landmarks]."""
+    problem = win._problem()
+    pk = problem.packed
+    K, M, N = len(problem.frame_ids), pk.num_landmarks, pk.num_observations
+    eps = 1e-6
+
+    def residuals(poses, s, d):
+        pk.lm_s[:], pk.lm_d[:] = s, d
+        return reprojection_residuals(win.camera, pk, poses)[0].reshape(-1)
+
+    s0, d0 = pk.lm_s.copy(), pk.lm_d.copy()
+    J = np.zeros((2 * N, 6 * K + 3 * M))
+    for idx in range(K):
+        for c in range(6):
+            J[:, 6 * idx + c] = (residuals(_perturbed(problem.poses, idx, c, eps), s0, d0)
+                                 - residuals(_perturbed(problem.poses, idx, c, -eps), s0, d0)
+                                 ) / (2 * eps)
+    for i in range(M):
+        for c in range(3):
+            sp, sm, dp, dm = s0.copy(), s0.copy(), d0.copy(), d0.copy()
+            if c < 2:
+                sp[i, c] += eps
+                sm[i, c] -= eps
+            else:
+                dp[i] += eps
+                dm[i] -= eps
+            J[:, 6 * K + 3 * i + c] = (residuals(problem.poses, sp, dp)
+                                       - residuals(problem.poses, sm, dm)) / (2 * eps)
+    r = residuals(problem.poses, s0, d0)
+    cfg = win.config
+    w = np.repeat(2.0 ** -pk.obs_level / cfg.obs_std_dev ** 2, 2)
+    return problem, J, r, w
+
+
+def test_schur_complement_matches_dense_normal_equations():
+    _, win = _window(config=BackendConfig(huber_threshold=1e6, landmark_damping=0.0))
+    problem, J, r, w = _dense_problem(win)
+    pk = problem.packed
+    K = len(problem.frame_ids)
+    H = J.T @ (w[:, None] * J)
+    b = J.T @ (w * r)
+    lin = linearize(win.camera, pk, problem.poses, problem.poses, 1.0 / 0.25, 1e6, 1.0)
+    H_raw, b_raw, H_red, b_red, Hll_inv, b_l = schur_reduce(
+        K, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.r, lin.w, lin.J_h, lin.J_t, lin.J_l, 0.0, 0.0)
+    P = slice(0, 6 * K)
+    L = slice(6 * K, None)
+    scale = np.abs(H).max()
+    np.testing.assert_allclose(H_raw, H[P, P], atol=1e-6 * scale)
+    np.testing.assert_allclose(b_raw, b[P], atol=1e-6 * np.abs(b).max())
+    H_schur = H[P, P] - H[P, L] @ np.linalg.solve(H[L, L], H[L, P])
+    b_schur = b[P] - H[P, L] @ np.linalg.solve(H[L, L], b[L])
+    np.testing.assert_allclose(H_red, H_schur, atol=1e-6 * scale)
+    np.testing.assert_allclose(b_red, b_schur, atol=1e-6 * np.abs(b).max())
+    np.testing.assert_allclose(b_l.reshape(-1), b[L], atol=1e-6 * np.abs(b).max())
+    # back-substitution: the landmark part of the full Newton step for a given pose step
+    dx = np.random.default_rng(3).normal(size=6 * K) * 1e-3
+    dl = back_substitute(dx, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.w, lin.J_h, lin.J_t,
+                         lin.J_l, Hll_inv, b_l)
+    expected = -np.linalg.solve(H[L, L], b[L] + H[L, P] @ dx)
+    np.testing.assert_allclose(dl.reshape(-1), expected, rtol=1e-5, atol=1e-9)
+
+
+def test_scale_fix_and_no_motion_derivatives():
+    rng = np.random.default_rng(1)
+    Ti = decoupled_increment(np.eye(4), rng.normal(size=6))
+    Tj = decoupled_increment(np.eye(4), rng.normal(size=6))
+    sf = ScaleFix(1, 2, 0.7, 3.0)
+    terms = [lambda a, b: sf.linearize(a, b), lambda a, b: no_motion_terms(a, b, 2.5)]
+    eps = 1e-6
+    for term in terms:
+        H, b, cost = term(Ti, Tj)
+        grad = np.zeros(12)
+        for which in range(2):
+            for c in range(6):
+                xi = np.zeros(6)
+                xi[c] = eps
+                args_p = [Ti, Tj]
+                args_m = [Ti, Tj]
+                args_p[which] = decoupled_increment(args_p[which], xi)
+                args_m[which] = decoupled_increment(args_m[which], -xi)
+                grad[6 * which + c] = (term(*args_p)[2] - term(*args_m)[2]) / (2 * eps)
+        np.testing.assert_allclose(2 * b, grad, atol=1e-6)
+        assert np.allclose(H, H.T) and np.min(np.linalg.eigvalsh(H)) > -1e-9
+
+
+def test_window_gradient_matches_robust_cost():
+    """Total gradient (reprojection with active Huber weights + gauge prior + scale fix + no
+    motion prior) against finite differences of :meth:`SlidingWindow.cost`."""
+    scene, win = _window(config=BackendConfig(huber_threshold=0.4, no_motion_weight=0.5))
+    win.set_scale_fix(scene.frame_ids[0], scene.frame_ids[2], 0.3)
+    # all landmarks of one host at infinity: its pairs are linked only by d = 0 points
+    for lm in win.landmarks.hosted_by(scene.frame_ids[-2]):
+        win.landmarks.landmark(lm).inv_dist = 0.0
+    hess = win.hessian_blocks()
+    assert np.any(hess.H_no_motion != 0) and np.any(hess.H_scale_fix != 0)
+    g_pose = hess.b - hess.b_reprojection + hess.b_reprojection_raw
+    eps = 1e-6
+    for f in win.frame_ids[1:]:
+        k = hess.index(f)
+        T0 = win.pose(f)
+        for c in range(6):
+            xi = np.zeros(6)
+            xi[c] = eps
+            win.set_pose(f, decoupled_increment(T0, xi))
+            cp = win.cost()
+            win.set_pose(f, decoupled_increment(T0, -xi))
+            cm = win.cost()
+            win.set_pose(f, T0)
+            num = (cp - cm) / (4 * eps)
+            assert abs(num - g_pose[6 * k + c]) <= 1e-4 * (abs(num) + 1.0), (f, c, num)

@@ -1,0 +1,161 @@
+"""Sliding-window optimisation on synthetic scenes with known truth and pixel noise."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from granite.backend import BackendConfig, pose_delta
+from granite.backend.synthetic import build_window, make_hover_scene, make_scene
+from granite.camera import make_camera
+
+NO_HUBER = BackendConfig(huber_threshold=1e6)  # pure least squares: chi-square statistics hold
+
+
+def _pose_errors(win, scene):
+    """Stacked decoupled twists from truth to estimate (6K,), rotation errors in degrees."""
+    e = np.concatenate([pose_delta(win.pose(f), scene.pose_of(f)) for f in scene.frame_ids])
+    rot = np.degrees(np.linalg.norm(e.reshape(-1, 6)[:, 3:], axis=1))
+    return e, rot
+
+
+def _nees(win, scene):
+    """Normalised estimation error squared of all poses but the gauge-fixed first one, with the
+    covariance predicted by the window's Hessian (paper Eq. 11)."""
+    e, _ = _pose_errors(win, scene)
+    H = win.hessian_blocks().H
+    cov = np.linalg.inv(H)[6:, 6:]
+    return float(e[6:] @ np.linalg.solve(cov, e[6:])), e.size - 6 - 1  # scale fixed too
+
+
+def _scale_fix(win, scene, i=0, j=1):
+    fi, fj = scene.frame_ids[i], scene.frame_ids[j]
+    win.set_scale_fix(fi, fj, float(np.linalg.norm(scene.pose_of(fi)[:3, 3]
+                                                   - scene.pose_of(fj)[:3, 3])))
+
+
+@pytest.mark.parametrize("camera", [None, "ds"])
+def test_converges_to_truth_with_noise_consistent_errors(camera):
+    cam = None if camera is None else make_camera(
+        "ds", {"fx": 350.0, "fy": 350.0, "cx": 319.5, "cy": 239.5, "xi": -0.2, "alpha": 0.6},
+        640, 480)
+    scene = make_scene(num_frames=10, num_points=300, sigma=0.5, max_level=2, camera=cam,
+                       seed=0)
+    win = build_window(scene, NO_HUBER, pose_noise=(0.03, 0.01), bearing_noise=0.003,
+                       inv_dist_noise=0.3, seed=1)
+    _scale_fix(win, scene)
+    report = win.optimize(max_iterations=15)
+    assert report.final_cost < 1e-2 * report.initial_cost
+    # the residual cost at the optimum is chi-square with 2N - (#params - gauge) dof
+    n_obs = win.landmarks.num_observations
+    dof = 2 * n_obs - (3 * len(win.landmarks) + 6 * len(win.frame_ids) - 7)
+    assert chi2.ppf(0.001, dof) < report.final_cost < chi2.ppf(0.999, dof)
+    # pose errors consistent with the predicted covariance (levels 0..2 weighted by 2^-c)
+    nees, nees_dof = _nees(win, scene)
+    assert chi2.ppf(0.001, nees_dof) < nees < chi2.ppf(0.999, nees_dof)
+    # gauge: first pose held by the prior, scale by the scale fix
+    np.testing.assert_allclose(win.pose(scene.frame_ids[0]), scene.poses[0], atol=1e-6)
+    _, rot = _pose_errors(win, scene)
+    assert rot.max() < 0.2
+
+
+def test_default_robust_config_and_lm_reach_the_same_optimum():
+    scene = make_scene(num_frames=8, num_points=200, sigma=0.5, seed=2)
+    gn = build_window(scene, BackendConfig(step_tolerance=1e-10), pose_noise=(0.02, 0.01),
+                      bearing_noise=0.002, inv_dist_noise=0.2, seed=3)
+    lm = build_window(scene, BackendConfig(use_lm=True, step_tolerance=1e-10),
+                      pose_noise=(0.02, 0.01), bearing_noise=0.002, inv_dist_noise=0.2, seed=3)
+    for win in (gn, lm):
+        _scale_fix(win, scene)
+    r_gn = gn.optimize(max_iterations=30)
+    r_lm = lm.optimize(max_iterations=60)
+    assert all(np.diff(r_lm.costs) <= 1e-9 * r_lm.costs[0])  # LM never increases the cost
+    assert r_gn.final_cost == pytest.approx(r_lm.final_cost, rel=1e-6)
+    for f in scene.frame_ids:
+        np.testing.assert_allclose(gn.pose(f), lm.pose(f), atol=1e-6)
+    _, rot = _pose_errors(gn, scene)
+    assert rot.max() < 0.2
+
+
+def test_pure_rotation_with_points_at_infinity():
+    """Hovering camera panning over far points (1-10 km). As the frontend does for a baseline
+    below the triangulation threshold, landmarks start at infinity (d = 0)."""
+    scene = make_scene(num_frames=10, num_points=400, sigma=0.5, pure_rotation=True,
+                       depth=(1e3, 1e4), obs_per_landmark=10, seed=3)
+    win = build_window(scene, pose_noise=(0.02, 0.01), bearing_noise=0.003,
+                       initial_inv_dist=0.0, seed=4)
+    e0, rot0 = _pose_errors(win, scene)
+    assert rot0.max() > 0.5  # the start is clearly off
+    report = win.optimize()
+    assert np.isfinite(report.final_cost) and report.final_cost < report.initial_cost
+    d = np.array([win.landmarks.landmark(i).inv_dist for i in scene.lm_ids])
+    assert np.all(d == 0.0)
+    _, rot = _pose_errors(win, scene)
+    assert rot.max() < 0.05
+    # translations are only tied by the no-motion prior: all pulled onto the gauge-fixed first
+    for f in scene.frame_ids:
+        assert np.all(np.isfinite(win.pose(f)))
+        np.testing.assert_allclose(win.pose(f)[:3, 3], scene.pose_of(f)[:3, 3], atol=1e-6)
+
+
+def test_far_points_with_wrong_depth_converge_to_infinity():
+    """Rotation in place after a 0.5 m map-initialisation baseline: far points triangulated
+    badly (5-20 m instead of 1-10 km) move to d = 0 or near it; points first seen during the
+    rotation start at infinity. Poses stay consistent with their predicted covariance."""
+    scene = make_hover_scene(seed=0)
+    win = build_window(scene, NO_HUBER, pose_noise=(0.01, 0.005), bearing_noise=0.002,
+                       inv_dist_noise=0.2, seed=3)
+    rng = np.random.default_rng(7)
+    far_from_baseline = []
+    for lm_id, d_true in zip(scene.lm_ids, scene.lm_inv_dist):
+        if d_true < 0.01:
+            lm = win.landmarks.landmark(lm_id)
+            if lm.host_frame_id == 0:
+                lm.inv_dist = rng.uniform(0.05, 0.2)
+                far_from_baseline.append(lm_id)
+            else:
+                lm.inv_dist = 0.0
+    assert len(far_from_baseline) >= 15
+    _scale_fix(win, scene)
+    report = win.optimize(max_iterations=10)
+    assert np.isfinite(report.final_cost)
+    d = np.array([win.landmarks.landmark(i).inv_dist for i in far_from_baseline])
+    # sigma_d ~ 0.5 px / (500 px * 0.5 m) = 2e-3; truth <= 1e-3
+    assert d.max() < 0.01 and np.median(d) < 0.002 and np.mean(d == 0.0) > 0.3
+    nees, dof = _nees(win, scene)
+    assert nees < chi2.ppf(0.999, dof)
+
+
+def test_outliers_are_downweighted_and_removed():
+    scene = make_scene(num_frames=8, num_points=200, sigma=0.5, seed=5)
+    rng = np.random.default_rng(6)
+    host = dict(zip(scene.lm_ids, scene.lm_host))
+    corrupted = set()
+    for k, (lm, f, uv, lvl) in enumerate(scene.observations):
+        if f != host[lm] and rng.random() < 0.03:
+            scene.observations[k] = (lm, f, uv + rng.choice([-1, 1], 2) * 15.0, lvl)
+            corrupted.add((lm, f))
+    win = build_window(scene, pose_noise=(0.01, 0.005), bearing_noise=0.002,
+                       inv_dist_noise=0.2, seed=7)
+    _scale_fix(win, scene)
+    win.optimize(max_iterations=10)
+    removed = set(win.remove_outliers())
+    assert corrupted <= removed
+    assert len(removed - corrupted) <= 0.01 * len(scene.observations)
+    win.optimize(max_iterations=5)
+    _, rot = _pose_errors(win, scene)
+    assert rot.max() < 0.2
+
+
+def test_inverse_distance_stays_in_bounds():
+    scene = make_scene(num_frames=6, num_points=100, sigma=0.5, seed=8)
+    cfg = BackendConfig(max_inv_dist=0.15)  # below many true values (4-10 m -> 0.1-0.25)
+    win = build_window(scene, cfg, pose_noise=(0.01, 0.005), inv_dist_noise=0.5, seed=9)
+    win.add_frame(999, scene.poses[-1], is_keyframe=True)
+    win.add_landmark(5, 999, np.array([0.0, 0.0, 1.0]), 3.0)  # clamped on insertion
+    assert win.landmarks.landmark(5).inv_dist == 0.15
+    _scale_fix(win, scene)
+    win.optimize()
+    d = np.array([win.landmarks.landmark(i).inv_dist for i in win.landmarks.landmark_ids])
+    assert np.all(d >= 0.0) and np.all(d <= 0.15) and np.any(d == 0.15)
