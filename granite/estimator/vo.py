@@ -224,6 +224,41 @@ class MonocularVO:
         self.keyframe_log.append((frame_id, self.submap))
         self.selector.reset()
 
+    def _optimize_and_select_keyframe(self, frame_id: int) -> tuple[float | None, bool]:
+        """Gauss-Newton on the window, then the keyframe decision of Sec. IV-D (taken on the
+        system linearised after ``entropy_iteration`` iterations), re-triangulation of points
+        at infinity and outlier removal. Returns (negative entropy, keyframe inserted)."""
+        win, est = self.window, self.config.estimator
+        report = win.optimize(snapshot_iteration=est.entropy_iteration - 1)
+        finite, infinite = self._connected(frame_id)
+        negative_entropy = None
+        if report.snapshot is not None and frame_id in report.snapshot.frame_ids:
+            negative_entropy = report.snapshot.negative_entropy(frame_id, include_translation=finite > 5)
+        take = self.selector.update(
+            negative_entropy if negative_entropy is not None else float("nan"), finite + infinite
+        )
+        inserted = False
+        if take and not win.is_keyframe(frame_id):
+            kf = frame_id
+            prev = self._previous_frame
+            if est.previous_frame_as_keyframe and prev is not None and prev in win and not win.is_keyframe(prev):
+                kf = prev
+            win.make_keyframe(kf)
+            self._add_landmarks_hosted_by(kf)
+            if kf != frame_id:  # the current frame observes the new landmarks too
+                db, cur = win.landmarks, self._tracks[frame_id]
+                for tid in db.hosted_by(kf):
+                    if frame_id not in db.observations(tid) and tid in cur.positions:
+                        win.add_observation(tid, frame_id, cur.positions[tid], cur.levels[tid])
+            self.keyframe_log.append((kf, self.submap))
+            self.selector.reset()
+            inserted = True
+            if est.keyframe_extra_iterations:
+                win.optimize(max_iterations=est.keyframe_extra_iterations)
+        self._retriangulate_infinite(frame_id)
+        win.remove_outliers()
+        return negative_entropy, inserted
+
     # ----------------------------------------------------------------------------- main
     def process(self, frame_id: int, timestamp: float, image: np.ndarray | None) -> FrameOutput:
         """Process one frame; ``image`` None marks a missing or corrupt image (skipped)."""
@@ -260,42 +295,19 @@ class MonocularVO:
         if not first_of_submap and finite < est.min_finite_observations:
             self._try_initialization(frame_id)
 
-        negative_entropy = None
+        negative_entropy, diverged = None, False
         if len(win.frame_ids) > 1:
-            report = win.optimize(snapshot_iteration=est.entropy_iteration - 1)
-            finite, infinite = self._connected(frame_id)
-            if report.snapshot is not None and frame_id in report.snapshot.frame_ids:
-                negative_entropy = report.snapshot.negative_entropy(
-                    frame_id, include_translation=finite > 5
-                )
-            take = self.selector.update(
-                negative_entropy if negative_entropy is not None else float("nan"), finite + infinite
-            )
-            if take and not win.is_keyframe(frame_id):
-                kf = frame_id
-                prev = self._previous_frame
-                if est.previous_frame_as_keyframe and prev is not None and prev in win and not win.is_keyframe(prev):
-                    kf = prev
-                win.make_keyframe(kf)
-                self._add_landmarks_hosted_by(kf)
-                if kf != frame_id:  # the current frame observes the new landmarks too
-                    db = win.landmarks
-                    for tid in win.landmarks.hosted_by(kf):
-                        if frame_id not in db.observations(tid) and tid in self._tracks[frame_id].positions:
-                            win.add_observation(tid, frame_id, self._tracks[frame_id].positions[tid], self._tracks[frame_id].levels[tid])
-                self.keyframe_log.append((kf, self.submap))
-                self.selector.reset()
-                keyframe_taken = True
-                if est.keyframe_extra_iterations:
-                    win.optimize(max_iterations=est.keyframe_extra_iterations)
-            self._retriangulate_infinite(frame_id)
-            win.remove_outliers()
+            try:
+                negative_entropy, inserted = self._optimize_and_select_keyframe(frame_id)
+                keyframe_taken |= inserted
+            except (FloatingPointError, np.linalg.LinAlgError):
+                diverged = True  # treated as a tracking failure below
 
         finite, infinite = self._connected(frame_id)
         state = "tracking" if self._map_initialized else "init"
         T_w_c = win.pose(frame_id)
         submap = self.submap
-        if len(win.keyframe_ids) >= 2 and finite + infinite < est.failure_min_connected:
+        if diverged or (len(win.keyframe_ids) >= 2 and finite + infinite < est.failure_min_connected):
             state = "lost"
             self._restart()
         else:
