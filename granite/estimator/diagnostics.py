@@ -65,7 +65,9 @@ def diagnostics_to_csv(rows: list[FrameDiagnostics]) -> str:
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(COLUMNS)
     for row in rows:
-        writer.writerow([_format(v) for v in astuple(row)])
+        values = [_format(v) for v in astuple(row)]
+        values[0] = f"{row.timestamp:.9f}"  # nanosecond resolution, no float noise
+        writer.writerow(values)
     return buffer.getvalue()
 
 

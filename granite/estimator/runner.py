@@ -117,7 +117,7 @@ def write_run(out_dir: str | Path, result: RunResult, config: VoConfig, extra: d
     out.mkdir(parents=True, exist_ok=True)
     write_tum(out / "trajectory.tum", result.trajectory)
     write_diagnostics(out / "diagnostics.csv", result.diagnostics)
-    rows = ["timestamp,frame_index,submap"] + [f"{t!r},{f},{s}" for t, f, s in result.keyframes]
+    rows = ["timestamp,frame_index,submap"] + [f"{t:.9f},{f},{s}" for t, f, s in result.keyframes]
     atomic_write_text(out / "keyframes.csv", "\n".join(rows) + "\n")
     atomic_write_text(out / "config.toml", config.to_toml())
     ms = np.array([d.processing_ms for d in result.diagnostics])
