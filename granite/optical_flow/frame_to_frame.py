@@ -1,0 +1,202 @@
+"""Frame-to-frame KLT optical flow with multi-level FAST detection (paper Sec. IV-A).
+
+Each call of :meth:`FrameToFrameOpticalFlow.process` tracks the points of the previous
+accepted frame into the new one (coarse to fine, forward-backward checked), then detects new
+corners in the free grid cells. Points are patch centres in level-0 pixels; the centre of the
+top-left pixel is (0, 0). Track ids are persistent and never reused.
+
+A frame that cannot be used (``None``, not a 2-D uint8/uint16 array, a size different from
+the first frame's, or a constant image) gives a :class:`FrameRejectedWarning` and an empty
+result; the tracker keeps the last accepted frame, so the next good frame is tracked from it
+(as across a frame drop).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from granite.optical_flow.config import OpticalFlowConfig
+from granite.optical_flow.detection import detect_new_points
+from granite.optical_flow.patterns import pattern52
+from granite.optical_flow.pyramid import SUPPORTED_DTYPES, ImagePyramid, build_pyramid
+from granite.optical_flow.tracking import new_template_cache, track_points
+
+
+class FrameRejectedWarning(UserWarning):
+    """An input frame was unusable; the frontend returned zero tracks for it."""
+
+
+@dataclass(frozen=True)
+class OpticalFlowResult:
+    """Tracks of one frame.
+
+    Attributes:
+        timestamp: seconds.
+        ids: (N,) int64 persistent track ids, ascending.
+        positions: (N, 2) float64 patch centres (u, v) in level-0 pixels.
+        levels: (N,) int64 creation level c of each patch.
+        weights: (N,) float64 observation weights 1 / 2**c (paper Eq. 7).
+        angles: (N,) float64 patch rotation (rad) accumulated since creation (SE(2) warp).
+        new: (N,) bool, True for points detected in this frame.
+        timing: milliseconds per stage: ``pyramid``, ``tracking``, ``detection``, ``total``.
+        rejected: why the frame was rejected (then N = 0), else None.
+    """
+
+    timestamp: float
+    ids: np.ndarray
+    positions: np.ndarray
+    levels: np.ndarray
+    weights: np.ndarray
+    angles: np.ndarray
+    new: np.ndarray
+    timing: dict[str, float] = field(default_factory=dict)
+    rejected: str | None = None
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+
+class FrameToFrameOpticalFlow:
+    """The frontend. ``image_size`` = (width, height); if None, the first accepted frame sets it."""
+
+    def __init__(self, config: OpticalFlowConfig | None = None, image_size: tuple[int, int] | None = None):
+        self.config = config or OpticalFlowConfig()
+        self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
+        self._pattern = pattern52(self.config.pattern_scale)
+        self._pyramid: ImagePyramid | None = None
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._points = np.zeros((0, 2))
+        self._levels = np.zeros(0, dtype=np.int64)
+        self._angles = np.zeros(0)
+        self._next_id = 0
+        # Templates of the current points in the reference image (filled by the backward pass
+        # of the last frame) and each point's row in it (-1: none).
+        self._cache = new_template_cache(0, self.config.levels, len(self._pattern))
+        self._rows = np.zeros(0, dtype=np.int64)
+        self._storage: list[tuple[np.ndarray, ...] | None] = [None, None]
+        self._active = 0
+
+    @property
+    def next_id(self) -> int:
+        """The id the next new track gets (= number of ids issued so far)."""
+        return self._next_id
+
+    def reset(self) -> None:
+        """Forget all tracks and the reference frame (ids keep increasing)."""
+        self._pyramid = None
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._points = np.zeros((0, 2))
+        self._levels = np.zeros(0, dtype=np.int64)
+        self._angles = np.zeros(0)
+        self._cache = new_template_cache(0, self.config.levels, len(self._pattern))
+        self._rows = np.zeros(0, dtype=np.int64)
+
+    def process(self, timestamp: float, image: np.ndarray | None) -> OpticalFlowResult:
+        """Track into ``image`` (2-D uint8 or uint16) and detect new points."""
+        t0 = time.perf_counter()
+        reason = self._check(image)
+        if reason is not None:
+            warnings.warn(f"frame at t={timestamp:.6f}: {reason}; no tracks", FrameRejectedWarning, stacklevel=2)
+            return self._empty(timestamp, reason)
+        assert image is not None
+        if self.image_size is None:
+            self.image_size = (image.shape[1], image.shape[0])
+
+        cfg = self.config
+        pyramid = build_pyramid(image, cfg.levels, cfg.presmooth_sigma)
+        t1 = time.perf_counter()
+
+        ids, points, levels, angles = self._ids, self._points, self._levels, self._angles
+        cache = self._take_cache(len(ids))
+        rows = np.zeros(0, dtype=np.int64)
+        if self._pyramid is not None and len(ids):
+            prev = self._pyramid
+            new_points, dtheta, status = track_points(
+                prev.data, prev.offsets, prev.widths, prev.heights,
+                pyramid.data, pyramid.offsets, pyramid.widths, pyramid.heights,
+                points, levels, self._rows, *self._cache, *cache,
+                self._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow,
+            )
+            ids, points, levels = ids[status], new_points[status], levels[status]
+            angles = angles[status] + dtheta[status]
+            rows = np.flatnonzero(status)
+        else:
+            ids, points, levels, angles = ids[:0], points[:0], levels[:0], angles[:0]
+        t2 = time.perf_counter()
+
+        det_points, det_levels = detect_new_points(pyramid, cfg, points, levels)
+        n_new = len(det_points)
+        det_ids = np.arange(self._next_id, self._next_id + n_new, dtype=np.int64)
+        self._next_id += n_new
+        t3 = time.perf_counter()
+
+        self._pyramid = pyramid
+        self._cache = cache
+        self._rows = np.concatenate([rows, np.full(n_new, -1, dtype=np.int64)])
+        self._ids = np.concatenate([ids, det_ids])
+        self._points = np.concatenate([points, det_points])
+        self._levels = np.concatenate([levels, det_levels])
+        self._angles = np.concatenate([angles, np.zeros(n_new)])
+        new = np.zeros(len(self._ids), dtype=bool)
+        new[len(ids):] = True
+        timing = {
+            "pyramid": 1e3 * (t1 - t0),
+            "tracking": 1e3 * (t2 - t1),
+            "detection": 1e3 * (t3 - t2),
+            "total": 1e3 * (t3 - t0),
+        }
+        return OpticalFlowResult(
+            timestamp=float(timestamp),
+            ids=self._ids.copy(),
+            positions=self._points.copy(),
+            levels=self._levels.copy(),
+            weights=1.0 / np.exp2(self._levels.astype(np.float64)),
+            angles=self._angles.copy(),
+            new=new,
+            timing=timing,
+        )
+
+    def _take_cache(self, n: int) -> tuple[np.ndarray, ...]:
+        """A template cache with n rows marked empty. Two storages alternate (the current
+        cache is read while the next one is written) and are kept across frames, which
+        avoids page faults on fresh multi-megabyte allocations every frame."""
+        self._active = 1 - self._active
+        storage = self._storage[self._active]
+        if storage is None or storage[0].shape[0] < n:
+            capacity = max(64, n + n // 4)
+            storage = new_template_cache(capacity, self.config.levels, len(self._pattern))
+            self._storage[self._active] = storage
+        cache = tuple(a[:n] for a in storage)
+        cache[0][:] = -1
+        return cache
+
+    def _check(self, image: np.ndarray | None) -> str | None:
+        if image is None:
+            return "no image"
+        if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype not in SUPPORTED_DTYPES:
+            shape = getattr(image, "shape", None)
+            dtype = getattr(image, "dtype", type(image).__name__)
+            return f"expected a 2-D uint8 or uint16 image, got {dtype} with shape {shape}"
+        h, w = image.shape
+        if self.image_size is not None and (w, h) != self.image_size:
+            return f"image size {w}x{h} differs from {self.image_size[0]}x{self.image_size[1]}"
+        if image.size == 0 or image.min() == image.max():
+            return "blank image (constant intensity)"
+        return None
+
+    def _empty(self, timestamp: float, reason: str) -> OpticalFlowResult:
+        return OpticalFlowResult(
+            timestamp=float(timestamp),
+            ids=np.zeros(0, dtype=np.int64),
+            positions=np.zeros((0, 2)),
+            levels=np.zeros(0, dtype=np.int64),
+            weights=np.zeros(0),
+            angles=np.zeros(0),
+            new=np.zeros(0, dtype=bool),
+            timing={"pyramid": 0.0, "tracking": 0.0, "detection": 0.0, "total": 0.0},
+            rejected=reason,
+        )

@@ -1,0 +1,246 @@
+"""Numba kernels for one patch: bilinear sampling and the mean-normalised SE(2) template.
+
+Images are pyramid levels inside a flat float32 buffer: pixel (x, y) of a level with offset
+``off`` and width ``w`` is ``buf[off + y * w + x]``; pixel centres are at integer coordinates.
+
+A patch samples the image at ``centre + R(theta) @ q_i`` for the pattern offsets ``q_i``. Its
+intensities are divided by their mean (invariance to gain changes). The template (the patch
+in the reference image, ``theta = 0``) stores the normalised intensities ``t``, the Jacobian
+``J`` (P x 3) of the normalised intensities w.r.t. an SE(2) increment ``(tx, ty, theta)``
+applied on the pattern side (including the change of the mean), ``(J^T J)^-1`` and ``J^T t``:
+everything the inverse-compositional Gauss-Newton step needs.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+_EPS = 1e-9
+#: LLVM fast-math flags: reassociation and contraction, but NaN/inf semantics kept so the
+#: validity checks stay meaningful.
+FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+_FASTMATH = FASTMATH
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def in_bounds(x: float, y: float, w: int, h: int, margin: float) -> bool:
+    """True when (x, y) is at least ``margin`` pixels inside a w x h image."""
+    return x >= margin and y >= margin and x <= w - 1 - margin and y <= h - 1 - margin
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def interp(buf, off, w, x, y):
+    """Bilinear intensity at (x, y); the caller guarantees the 2x2 neighbourhood is inside."""
+    ix = int(x)
+    iy = int(y)
+    dx = x - ix
+    dy = y - iy
+    i = off + iy * w + ix
+    top = (1.0 - dx) * buf[i] + dx * buf[i + 1]
+    bottom = (1.0 - dx) * buf[i + w] + dx * buf[i + w + 1]
+    return (1.0 - dy) * top + dy * bottom
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def interp_grad(buf, off, w, x, y):
+    """Bilinear intensity and its gradient (central differences of bilinear samples 1 px
+    apart). Needs a 1 px margin beyond the 2x2 neighbourhood."""
+    ix = int(x)
+    iy = int(y)
+    dx = x - ix
+    dy = y - iy
+    ddx = 1.0 - dx
+    ddy = 1.0 - dy
+    i = off + iy * w + ix
+    p00 = buf[i]
+    p10 = buf[i + 1]
+    p01 = buf[i + w]
+    p11 = buf[i + w + 1]
+    value = ddx * ddy * p00 + dx * ddy * p10 + ddx * dy * p01 + dx * dy * p11
+    # x - 1 and x + 1
+    pm0 = buf[i - 1]
+    pm1 = buf[i + w - 1]
+    p20 = buf[i + 2]
+    p21 = buf[i + w + 2]
+    v_mx = ddx * ddy * pm0 + dx * ddy * p00 + ddx * dy * pm1 + dx * dy * p01
+    v_px = ddx * ddy * p10 + dx * ddy * p20 + ddx * dy * p11 + dx * dy * p21
+    # y - 1 and y + 1
+    p0m = buf[i - w]
+    p1m = buf[i - w + 1]
+    p02 = buf[i + 2 * w]
+    p12 = buf[i + 2 * w + 1]
+    v_my = ddx * ddy * p0m + dx * ddy * p1m + ddx * dy * p00 + dx * dy * p10
+    v_py = ddx * ddy * p01 + dx * ddy * p11 + ddx * dy * p02 + dx * dy * p12
+    return value, 0.5 * (v_px - v_mx), 0.5 * (v_py - v_my)
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def make_template(buf, off, w, h, cx, cy, pattern, margin, data, valid, jac, aux) -> int:
+    """Fill the template of the patch centred at (cx, cy) (level pixels).
+
+    Outputs (preallocated float32 except ``valid``): ``data`` (P,) normalised intensities
+    ``t``, ``valid`` (P,) bool, ``jac`` (P, 3) Jacobian ``J`` of the normalised intensities,
+    ``aux`` (4, 3): rows 0-2 ``(J^T J)^-1``, row 3 ``J^T t``. Returns 0 (invalid) when the
+    centre or at least half of the pattern is not inside the image, the patch mean is not
+    positive, or ``J^T J`` is singular (a textureless patch); 2 when every sample is valid,
+    else 1.
+    """
+    n = pattern.shape[0]
+    if not in_bounds(cx, cy, w, h, margin):
+        # The tracker rejects such centres anyway; for a point-symmetric pattern without
+        # samples on the axes (like the 52-point one) at most half the samples are inside.
+        return 0
+    total = 0.0
+    n_valid = 0
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
+    for i in range(n):
+        qx = pattern[i, 0]
+        qy = pattern[i, 1]
+        x = cx + qx
+        y = cy + qy
+        if in_bounds(x, y, w, h, margin):
+            v, gx, gy = interp_grad(buf, off, w, x, y)
+            gt = -qy * gx + qx * gy
+            data[i] = v
+            valid[i] = True
+            total += v
+            n_valid += 1
+            jac[i, 0] = gx
+            jac[i, 1] = gy
+            jac[i, 2] = gt
+            g0 += gx
+            g1 += gy
+            g2 += gt
+        else:
+            data[i] = 0.0
+            valid[i] = False
+            jac[i, 0] = 0.0
+            jac[i, 1] = 0.0
+            jac[i, 2] = 0.0
+    if 2 * n_valid <= n or total <= _EPS:
+        return 0
+    mean_inv = n_valid / total
+    # d(v_i / mean)/d xi = (g_i - v_i * sum_j g_j / total) / mean
+    h00 = h01 = h02 = h11 = h12 = h22 = 0.0
+    jt0 = jt1 = jt2 = 0.0
+    for i in range(n):
+        if valid[i]:
+            r = data[i] / total
+            j0 = (jac[i, 0] - g0 * r) * mean_inv
+            j1 = (jac[i, 1] - g1 * r) * mean_inv
+            j2 = (jac[i, 2] - g2 * r) * mean_inv
+            t = data[i] * mean_inv
+            jac[i, 0] = j0
+            jac[i, 1] = j1
+            jac[i, 2] = j2
+            data[i] = t
+            jt0 += j0 * t
+            jt1 += j1 * t
+            jt2 += j2 * t
+            h00 += j0 * j0
+            h01 += j0 * j1
+            h02 += j0 * j2
+            h11 += j1 * j1
+            h12 += j1 * j2
+            h22 += j2 * j2
+    # Inverse of the symmetric 3x3 normal matrix by cofactors.
+    c00 = h11 * h22 - h12 * h12
+    c01 = h02 * h12 - h01 * h22
+    c02 = h01 * h12 - h02 * h11
+    c11 = h00 * h22 - h02 * h02
+    c12 = h01 * h02 - h00 * h12
+    c22 = h00 * h11 - h01 * h01
+    det = h00 * c00 + h01 * c01 + h02 * c02
+    scale = h00 * h11 * h22
+    if not (scale > 1e-30) or not (det > 1e-9 * scale):
+        return 0
+    inv = 1.0 / det
+    aux[0, 0] = c00 * inv
+    aux[0, 1] = c01 * inv
+    aux[0, 2] = c02 * inv
+    aux[1, 0] = c01 * inv
+    aux[1, 1] = c11 * inv
+    aux[1, 2] = c12 * inv
+    aux[2, 0] = c02 * inv
+    aux[2, 1] = c12 * inv
+    aux[2, 2] = c22 * inv
+    aux[3, 0] = jt0
+    aux[3, 1] = jt1
+    aux[3, 2] = jt2
+    return 2 if n_valid == n else 1
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def patch_increment(buf, off, w, h, tx, ty, cos_t, sin_t, pattern, radius, margin, state, data, valid, jac, aux):
+    """Gauss-Newton step of the patch warped to (tx, ty, theta) against its template.
+
+    ``state``, ``data``, ``valid``, ``jac``, ``aux`` are the template (see
+    :func:`make_template`); ``radius`` bounds the pattern's sample distance from the centre.
+    Returns (ok, d0, d1, d2) with the increment ``-(J^T J)^-1 J^T r`` over the samples
+    inside the image and valid in the template, ``r_i = v_i * sum(t) / sum(v) - t_i`` (the
+    current intensities scaled to the template's normalised sum). ``ok`` is False when at
+    most half of the pattern has a residual or the patch mean is not positive.
+    """
+    n = pattern.shape[0]
+    total = 0.0
+    b0 = 0.0
+    b1 = 0.0
+    b2 = 0.0
+    # J^T r = norm * J^T v - J^T t with norm = sum(t) / sum(v); sum(t) = n for a full patch.
+    if state == 2 and in_bounds(tx, ty, w, h, margin + radius):
+        # Fast path: every sample inside the image and valid in the template.
+        for i in range(n):
+            qx = pattern[i, 0]
+            qy = pattern[i, 1]
+            v = interp(buf, off, w, cos_t * qx - sin_t * qy + tx, sin_t * qx + cos_t * qy + ty)
+            total += v
+            b0 += jac[i, 0] * v
+            b1 += jac[i, 1] * v
+            b2 += jac[i, 2] * v
+        sum_t = float(n)  # normalised template intensities have mean 1
+        n_res = n
+        t0 = aux[3, 0]
+        t1 = aux[3, 1]
+        t2 = aux[3, 2]
+    else:
+        # Samples outside the image or invalid in the template are dropped; the current
+        # samples are scaled to the template's normalised sum over the remaining ones.
+        n_res = 0
+        sum_t = 0.0
+        t0 = 0.0
+        t1 = 0.0
+        t2 = 0.0
+        for i in range(n):
+            if not valid[i]:
+                continue
+            qx = pattern[i, 0]
+            qy = pattern[i, 1]
+            x = cos_t * qx - sin_t * qy + tx
+            y = sin_t * qx + cos_t * qy + ty
+            if in_bounds(x, y, w, h, margin):
+                v = interp(buf, off, w, x, y)
+                j0 = jac[i, 0]
+                j1 = jac[i, 1]
+                j2 = jac[i, 2]
+                d = data[i]
+                total += v
+                sum_t += d
+                b0 += j0 * v
+                b1 += j1 * v
+                b2 += j2 * v
+                t0 += j0 * d
+                t1 += j1 * d
+                t2 += j2 * d
+                n_res += 1
+    if 2 * n_res <= n or total <= _EPS:
+        return False, 0.0, 0.0, 0.0
+    norm = sum_t / total
+    r0 = norm * b0 - t0
+    r1 = norm * b1 - t1
+    r2 = norm * b2 - t2
+    d0 = -(aux[0, 0] * r0 + aux[0, 1] * r1 + aux[0, 2] * r2)
+    d1 = -(aux[1, 0] * r0 + aux[1, 1] * r1 + aux[1, 2] * r2)
+    d2 = -(aux[2, 0] * r0 + aux[2, 1] * r1 + aux[2, 2] * r2)
+    return True, d0, d1, d2

@@ -1,0 +1,223 @@
+"""Numba kernels: coarse-to-fine patch tracking with a forward-backward check.
+
+A point is a patch centre in level-0 pixels; at level ``l`` it is at ``p / 2**l``. A patch
+created at level ``c`` is tracked from the coarsest level down to ``c``: at each level the
+template is sampled around the point's position in the reference image, and an SE(2) warp
+(translation in level pixels, rotation angle) is refined by up to ``iterations``
+inverse-compositional Gauss-Newton steps, ``W <- W o exp(-(J^T J)^-1 J^T r)``. Levels coarser than
+``c + 1`` where the patch does not fit into the image are skipped (small images have tiny
+coarse levels); a failure at level ``c + 1`` or ``c`` rejects the track.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from granite.optical_flow.patch import FASTMATH as _FASTMATH
+from granite.optical_flow.patch import in_bounds, make_template, patch_increment
+
+#: Gauss-Newton stops early once a step is below 0.01 pixels on the creation level of a patch
+#: and below 0.1 pixels on coarser levels, which only need to start the next level well
+#: inside its convergence basin (this saves ~40 % of the iterations at equal accuracy).
+_MIN_STEP_SQ = 0.01**2
+_MIN_STEP_SQ_COARSE = 0.1**2
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def track_level(
+    buf, off, w, h, tx, ty, theta, pattern, radius, margin, iterations, min_step_sq, state, data, valid, jac, aux
+):
+    """Refine the warp (tx, ty, theta) (level pixels) of one template. Returns (ok, tx, ty, theta).
+
+    Stops early once a step moves the patch by less than ``sqrt(min_step_sq)`` level pixels
+    (translation plus rotation times a 5 px lever arm).
+    """
+    c = math.cos(theta)
+    s = math.sin(theta)
+    for _ in range(iterations):
+        ok, d0, d1, d2 = patch_increment(
+            buf, off, w, h, tx, ty, c, s, pattern, radius, margin, state, data, valid, jac, aux
+        )
+        if not ok:
+            return False, tx, ty, theta
+        # SE(2) exponential of (d0, d1, d2), composed on the right: W <- W o exp(d).
+        if abs(d2) < 0.05:  # series, truncation error < 1e-10
+            q = d2 * d2
+            a = 1.0 - q / 6.0 + q * q / 120.0  # sin(d2) / d2
+            b = d2 * (0.5 - q / 24.0 + q * q / 720.0)  # (1 - cos(d2)) / d2
+            cd = 1.0 - q * (0.5 - q / 24.0)
+            sd = d2 * a
+        else:
+            sd = math.sin(d2)
+            cd = math.cos(d2)
+            a = sd / d2
+            b = (1.0 - cd) / d2
+        ex = a * d0 - b * d1
+        ey = b * d0 + a * d1
+        tx += c * ex - s * ey
+        ty += s * ex + c * ey
+        c, s = c * cd - s * sd, s * cd + c * sd
+        theta += d2
+        if not in_bounds(tx, ty, w, h, margin) or not (abs(theta) < 10.0):
+            return False, tx, ty, theta
+        if d0 * d0 + d1 * d1 + 25.0 * d2 * d2 < min_step_sq:
+            break
+    return True, tx, ty, theta
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def track_point(
+    buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+    x0, y0, gx, gy, level, pattern, radius, margin, iterations, st, data, valid, jac, aux,
+):
+    """Track the point (x0, y0) of image A (level-0 pixels, created at ``level``) into image B,
+    starting from the guess (gx, gy). Returns (ok, x, y, theta) in level-0 pixels, theta the
+    patch rotation from A to B.
+
+    ``st`` (L,) int8, ``data`` (L, P), ``valid`` (L, P), ``jac`` (L, P, 3), ``aux`` (L, 4, 3)
+    hold this point's templates in image A per level: ``st[l]`` is the return value of
+    :func:`make_template` (0 invalid, 1 valid, 2 valid and complete) or -1 (not computed
+    yet: computed here and stored).
+    """
+    tx = gx
+    ty = gy
+    theta = 0.0
+    n_levels = offs_a.shape[0]
+    for lvl in range(n_levels - 1, level - 1, -1):
+        scale = float(1 << lvl)
+        if st[lvl] < 0:
+            st[lvl] = make_template(
+                buf_a, offs_a[lvl], ws_a[lvl], hs_a[lvl], x0 / scale, y0 / scale,
+                pattern, margin, data[lvl], valid[lvl], jac[lvl], aux[lvl],
+            )
+        ok = st[lvl] > 0
+        if ok:
+            ok, nx, ny, nt = track_level(
+                buf_b, offs_b[lvl], ws_b[lvl], hs_b[lvl], tx / scale, ty / scale, theta,
+                pattern, radius, margin, iterations,
+                _MIN_STEP_SQ if lvl == level else _MIN_STEP_SQ_COARSE,
+                st[lvl], data[lvl], valid[lvl], jac[lvl], aux[lvl],
+            )
+            if ok:
+                tx = nx * scale
+                ty = ny * scale
+                theta = nt
+        if not ok and lvl <= level + 1:
+            return False, tx, ty, theta
+    return True, tx, ty, theta
+
+
+def new_template_cache(num_points: int, num_levels: int, num_samples: int):
+    """Empty template cache ``(st, data, valid, jac, aux)`` for ``num_points`` points, all
+    templates marked not computed (-1)."""
+    return (
+        np.full((num_points, num_levels), -1, dtype=np.int8),
+        np.empty((num_points, num_levels, num_samples), dtype=np.float32),
+        np.empty((num_points, num_levels, num_samples), dtype=np.bool_),
+        np.empty((num_points, num_levels, num_samples, 3), dtype=np.float32),
+        np.empty((num_points, num_levels, 4, 3), dtype=np.float32),
+    )
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def track_points(
+    buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+    points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
+    st_b, data_b, valid_b, jac_b, aux_b,
+    pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
+):
+    """Track all points of image A into image B with a forward-backward check.
+
+    Args:
+        points: (N, 2) float64 level-0 positions in A; levels: (N,) int64 creation levels.
+        rows_a: (N,) row of each point in the template cache of image A (``*_a``), or -1.
+        ``*_b``: template cache of image B with N rows (``st_b`` all -1 on entry); the
+            backward pass fills row k with point k's templates at its new position, so the
+            next frame can reuse them as its ``*_a`` cache.
+        retry_min_flow: if > 0 and the median displacement ``f`` of the points tracked on
+            the first pass is at least this long (level-0 pixels), the failed points are
+            tracked again from the guess ``p + f`` (and back from ``p' - f``).
+    Returns:
+        (new_points (N, 2), theta (N,), status (N,) bool): status is True when the point was
+        tracked A -> B and back B -> A to within ``fb_threshold_sq`` (squared distance in
+        pixels of its creation level) of its start. The first pass starts both directions
+        from zero motion, as the reference does.
+    """
+    n = points.shape[0]
+    n_levels = offs_a.shape[0]
+    p = pattern.shape[0]
+    out = np.empty((n, 2))
+    theta = np.zeros(n)
+    status = np.zeros(n, dtype=np.bool_)
+    st_s = np.empty(n_levels, dtype=np.int8)
+    data_s = np.empty((n_levels, p), dtype=np.float32)
+    valid_s = np.empty((n_levels, p), dtype=np.bool_)
+    jac_s = np.empty((n_levels, p, 3), dtype=np.float32)
+    aux_s = np.empty((n_levels, 4, 3), dtype=np.float32)
+    radius = 0.0
+    for i in range(p):
+        radius = max(radius, math.sqrt(pattern[i, 0] ** 2 + pattern[i, 1] ** 2))
+    radius += 1e-6
+    flow_x = 0.0
+    flow_y = 0.0
+    for attempt in range(2):
+        if attempt == 1:
+            # Median displacement of the first pass as the guess for the failed points.
+            n_ok = 0
+            for k in range(n):
+                n_ok += status[k]
+            if retry_min_flow <= 0.0 or n_ok < 5 or n_ok == n:
+                break
+            dx = np.empty(n_ok)
+            dy = np.empty(n_ok)
+            j = 0
+            for k in range(n):
+                if status[k]:
+                    dx[j] = out[k, 0] - points[k, 0]
+                    dy[j] = out[k, 1] - points[k, 1]
+                    j += 1
+            flow_x = np.median(dx)
+            flow_y = np.median(dy)
+            if flow_x * flow_x + flow_y * flow_y < retry_min_flow * retry_min_flow:
+                break
+        for k in range(n):
+            if status[k]:
+                continue
+            x0 = points[k, 0]
+            y0 = points[k, 1]
+            lvl = levels[k]
+            row = rows_a[k]
+            if row >= 0:
+                ok, x1, y1, t1 = track_point(
+                    buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+                    x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, margin, iterations,
+                    st_a[row], data_a[row], valid_a[row], jac_a[row], aux_a[row],
+                )
+            else:
+                st_s[:] = -1
+                ok, x1, y1, t1 = track_point(
+                    buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+                    x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, margin, iterations,
+                    st_s, data_s, valid_s, jac_s, aux_s,
+                )
+            if attempt == 0 or ok:
+                out[k, 0] = x1
+                out[k, 1] = y1
+                theta[k] = t1
+            if not ok:
+                continue
+            st_b[k, :] = -1  # templates at a new position
+            ok, xb, yb, _ = track_point(
+                buf_b, offs_b, ws_b, hs_b, buf_a, offs_a, ws_a, hs_a,
+                x1, y1, x1 - flow_x, y1 - flow_y, lvl, pattern, radius, margin, iterations,
+                st_b[k], data_b[k], valid_b[k], jac_b[k], aux_b[k],
+            )
+            if not ok:
+                continue
+            scale = float(1 << lvl)
+            dist_sq = ((xb - x0) ** 2 + (yb - y0) ** 2) / (scale * scale)
+            status[k] = dist_sq < fb_threshold_sq
+    return out, theta, status

@@ -1,0 +1,443 @@
+"""Optical-flow frontend: pyramid, patterns, patch kernels, detection and tracking on
+synthetic images warped by known transforms (ground truth = the analytic mapping)."""
+
+from __future__ import annotations
+
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+
+from granite.errors import ConfigError
+from granite.optical_flow import (
+    FrameRejectedWarning,
+    FrameToFrameOpticalFlow,
+    OpticalFlowConfig,
+    build_pyramid,
+)
+from granite.optical_flow.detection import cell_layout, detect_in_cells, detect_new_points
+from granite.optical_flow.patch import interp, interp_grad, make_template
+from granite.optical_flow.patterns import pattern52, pattern52_raw
+from granite.optical_flow.synthetic import apply_affine, similarity, textured_image, warp
+from granite.optical_flow.tracking import new_template_cache, track_points
+
+H, W = 480, 640
+CENTRE = (W / 2, H / 2)
+
+
+@pytest.fixture(scope="module")
+def texture() -> np.ndarray:
+    return textured_image(H, W, seed=1)
+
+
+def track_pair(img0, img1, config=None):
+    """Run the frontend on two frames; return (positions in 0, positions in 1, result0, result1)
+    for the tracks present in both."""
+    flow = FrameToFrameOpticalFlow(config)
+    r0 = flow.process(0.0, img0)
+    r1 = flow.process(0.1, img1)
+    _, i0, i1 = np.intersect1d(r0.ids, r1.ids, return_indices=True)
+    return r0.positions[i0], r1.positions[i1], r0, r1
+
+
+# --------------------------------------------------------------------------- config
+
+
+def test_config_defaults_are_the_reference_values():
+    c = OpticalFlowConfig()
+    assert (c.levels, c.grid_size, c.iterations, c.border) == (6, 40, 6, 19)
+    assert c.pattern_scale == 0.75 and c.fb_threshold_sq == 0.03
+    assert c.fast_thresholds == (40, 20, 10, 5)
+    assert c.detection_levels == (0, 1, 2, 3, 4)
+    assert OpticalFlowConfig(detect_all_levels=False).detection_levels == (0,)
+    assert OpticalFlowConfig.from_dict(c.to_dict()) == c
+
+
+@pytest.mark.parametrize(
+    "values",
+    [{"levels": 6, "grid": 40}, {"levels": 0}, {"levels": 2.5}, {"detect_all_levels": 1},
+     {"fb_threshold_sq": -1.0}, {"fast_min_threshold": 50}, {"margin": 1.0}],
+)
+def test_config_rejects_unknown_keys_and_bad_values(values):
+    with pytest.raises(ConfigError):
+        OpticalFlowConfig.from_dict(values)
+
+
+# --------------------------------------------------------------------------- building blocks
+
+
+def test_pattern52_is_the_reference_diamond():
+    raw = pattern52_raw()
+    assert raw.shape == (52, 2) and len({tuple(p) for p in raw}) == 52
+    assert np.all(np.abs(raw) <= 7) and np.all(raw % 2 == 1)  # odd offsets: 2 px lattice
+    np.testing.assert_array_equal(np.sort(raw, axis=0), np.sort(-raw, axis=0))  # symmetric
+    assert np.all(np.abs(raw).sum(axis=1) <= 10)  # diamond: |x| + |y| <= 10
+    np.testing.assert_allclose(pattern52(0.75), 0.75 * raw)
+
+
+def test_pyramid_maps_level0_coordinates_by_powers_of_two():
+    """A Gaussian blob at a known sub-pixel position: its intensity centroid on level l is
+    at x0 / 2**l (the convention the tracker relies on)."""
+    x0, y0 = 301.3, 170.6
+    yy, xx = np.mgrid[0:H, 0:W]
+    blob = 20 + 200 * np.exp(-0.5 * ((xx - x0) ** 2 + (yy - y0) ** 2) / 12.0**2)
+    pyr = build_pyramid(np.rint(blob).astype(np.uint8), 5)
+    for lvl in range(5):
+        im = pyr.level(lvl).astype(np.float64) - 20.0
+        ly, lx = np.mgrid[0 : im.shape[0], 0 : im.shape[1]]
+        cx, cy = (im * lx).sum() / im.sum(), (im * ly).sum() / im.sum()
+        assert abs(cx - x0 / 2**lvl) < 0.02 and abs(cy - y0 / 2**lvl) < 0.02, lvl
+
+
+@pytest.mark.parametrize("shape", [(370, 1226), (33, 17), (1, 1)])
+def test_pyramid_handles_odd_sizes_and_16_bit(shape):
+    img = (np.arange(shape[0] * shape[1]) % 4096).reshape(shape).astype(np.uint16)
+    pyr = build_pyramid(img, 6)
+    h, w = shape
+    for lvl in range(6):
+        assert pyr.level(lvl).shape == (h, w) and pyr.level(lvl).dtype == np.float32
+        h, w = (h + 1) // 2, (w + 1) // 2
+    np.testing.assert_array_equal(pyr.level(0), img.astype(np.float32))
+    np.testing.assert_allclose(pyr.level(1), cv2.pyrDown(img.astype(np.float32)))
+    assert pyr.level_uint8(0).max() == round(img.max() * 255 / 65535)
+
+
+def test_bilinear_value_and_gradient_are_exact_on_a_plane():
+    yy, xx = np.mgrid[0:20, 0:30].astype(np.float32)
+    plane = (5.0 + 1.5 * xx + 0.25 * yy).ravel()
+    for x, y in [(2.0, 2.0), (7.3, 11.9), (26.99, 16.5)]:
+        assert interp(plane, 0, 30, x, y) == pytest.approx(5 + 1.5 * x + 0.25 * y, abs=1e-4)
+        v, gx, gy = interp_grad(plane, 0, 30, x, y)
+        assert (v, gx, gy) == pytest.approx((5 + 1.5 * x + 0.25 * y, 1.5, 0.25), abs=1e-4)
+
+
+def test_template_jacobian_matches_finite_differences():
+    """J of the mean-normalised patch w.r.t. an SE(2) increment on the pattern side, checked
+    by central differences of the analytic patch of a smooth image."""
+
+    def intensity(x, y):
+        return 100 + 30 * np.sin(x / 9.0 + 0.3) * np.cos(y / 7.0) + 20 * np.cos((x + 2 * y) / 13.0)
+
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+    img = intensity(xx, yy).astype(np.float32)
+    pat = pattern52(0.75)
+    st, data, valid, jac, aux = (a[0, 0] for a in new_template_cache(1, 1, 52))
+    cx, cy = 211.4, 137.7
+    assert make_template(img.ravel(), 0, W, H, cx, cy, pat, 2.0, data, valid, jac, aux) == 2
+
+    def patch(xi):
+        c, s = np.cos(xi[2]), np.sin(xi[2])
+        a, b = (np.sin(xi[2]) / xi[2], (1 - np.cos(xi[2])) / xi[2]) if xi[2] else (1.0, 0.0)
+        t = np.array([a * xi[0] - b * xi[1], b * xi[0] + a * xi[1]])
+        pts = pat @ np.array([[c, -s], [s, c]]).T + t + (cx, cy)
+        v = intensity(pts[:, 0], pts[:, 1])
+        return v / v.mean()
+
+    np.testing.assert_allclose(data, patch(np.zeros(3)), atol=2e-3)  # bilinear vs analytic
+    eps = 1e-4
+    numeric = np.stack([(patch(eps * e) - patch(-eps * e)) / (2 * eps) for e in np.eye(3)], axis=1)
+    scale = np.abs(numeric).max(axis=0)
+    assert np.all(np.abs(jac - numeric).max(axis=0) < 0.03 * scale)
+    normal = jac.astype(np.float64).T @ jac
+    np.testing.assert_allclose(aux[:3] @ normal, np.eye(3), atol=1e-3)
+    np.testing.assert_allclose(aux[3], jac.astype(np.float64).T @ data, rtol=1e-4, atol=1e-4)
+
+
+# --------------------------------------------------------------------------- tracking accuracy
+
+
+@pytest.mark.parametrize(
+    "name, affine",
+    [
+        ("translation", similarity(12.3, -7.6, 0.0, 1.0, CENTRE)),
+        ("rotation 5 deg", similarity(0.0, 0.0, np.radians(5), 1.0, CENTRE)),
+        ("scale 3 %", similarity(0.0, 0.0, 0.0, 1.03, CENTRE)),
+        ("combined", similarity(9.4, 5.2, np.radians(4), 1.02, CENTRE)),
+        ("large translation", similarity(45.5, -30.2, np.radians(2), 1.0, CENTRE)),
+    ],
+)
+def test_tracks_a_known_warp_with_sub_tenth_pixel_median_error(texture, name, affine):
+    p0, p1, r0, _ = track_pair(texture, warp(texture, affine))
+    err = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1)
+    inside = apply_affine(affine, r0.positions)
+    n_visible = np.sum((inside >= 25).all(axis=1) & (inside[:, 0] < W - 25) & (inside[:, 1] < H - 25))
+    assert len(p0) >= 0.7 * n_visible, name
+    assert np.median(err) < 0.1, name
+    assert np.mean(err < 1.0) > 0.98, name
+
+
+def test_coarse_to_fine_is_what_follows_large_motion(texture):
+    affine = similarity(45.5, -30.2, 0.0, 1.0, CENTRE)
+    single = OpticalFlowConfig(levels=1, retry_min_flow=0.0)
+    p0, p1, _, _ = track_pair(texture, warp(texture, affine), single)
+    good = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1) < 0.5
+    assert good.sum() < 5  # a single level cannot follow 55 px
+
+
+def test_median_flow_retry_recovers_points_without_usable_coarse_levels(texture):
+    """80 px: only points whose coarsest levels hold a whole patch follow on the first pass;
+    the retry from their median displacement recovers most of the others."""
+    affine = similarity(80.0, -20.0, np.radians(2), 1.0, CENTRE)
+    img1 = warp(texture, affine)
+    counts = {}
+    for retry in (0.0, 2.0):
+        p0, p1, r0, _ = track_pair(texture, img1, OpticalFlowConfig(retry_min_flow=retry))
+        truth = apply_affine(affine, p0)
+        # The warp mirrors the image at its border: judge points that stay in view.
+        visible = (truth >= 10).all(axis=1) & (truth[:, 0] < W - 10) & (truth[:, 1] < H - 10)
+        err = np.linalg.norm(p1 - truth, axis=1)[visible]
+        assert np.median(err) < 0.1 and np.mean(err < 1.0) > 0.95  # 80 px: a rare false match
+        counts[retry] = len(p0)
+    pred = apply_affine(affine, r0.positions)
+    n_visible = np.sum((pred >= 25).all(axis=1) & (pred[:, 0] < W - 25) & (pred[:, 1] < H - 25))
+    assert counts[0.0] < 0.5 * n_visible and counts[2.0] > 0.9 * n_visible
+
+
+def test_brightness_change_is_tolerated(texture):
+    affine = similarity(5.2, -3.1, np.radians(2), 1.0, CENTRE)
+    dark = (warp(texture, affine) * 0.6).astype(np.uint8)
+    p0, p1, r0, _ = track_pair(texture, dark)
+    err = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1)
+    assert len(p0) > 0.85 * len(r0) and np.median(err) < 0.1
+
+
+def test_presmoothing_keeps_tracks_on_noisy_images():
+    """Independent per-frame noise (6 DN on a low-contrast texture) makes the forward-backward
+    check drop tracks; a 0.7 px Gaussian before the pyramid keeps them, at equal accuracy."""
+    img0 = textured_image(H, W, seed=1, contrast=0.4)
+    affine = similarity(5.3, -2.2, np.radians(1), 1.0, CENTRE)
+    rng = np.random.default_rng(5)
+    frames = [np.clip(im + rng.normal(0.0, 6.0, im.shape), 0, 255).astype(np.uint8)
+              for im in (img0, warp(img0, affine))]
+    kept, median = {}, {}
+    for sigma in (0.0, 0.7):
+        p0, p1, r0, _ = track_pair(*frames, OpticalFlowConfig(presmooth_sigma=sigma))
+        kept[sigma] = len(p0) / len(r0)
+        median[sigma] = np.median(np.linalg.norm(p1 - apply_affine(affine, p0), axis=1))
+    assert kept[0.7] > 0.97 and kept[0.7] > kept[0.0] + 0.08
+    assert median[0.7] < 0.2 and median[0.0] < 0.2
+
+
+def test_presmoothed_pyramid_is_the_blurred_image():
+    img = textured_image(60, 80, seed=9)
+    pyr = build_pyramid(img, 3, presmooth_sigma=0.7)
+    blurred = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.7, borderType=cv2.BORDER_REFLECT_101)
+    np.testing.assert_allclose(pyr.level(0), blurred, atol=1e-4)
+    np.testing.assert_allclose(pyr.level(1), cv2.pyrDown(blurred), atol=1e-4)
+
+
+@pytest.mark.parametrize("seed", [7, 8])
+def test_forward_backward_check_rejects_occluded_patches(texture, seed):
+    affine = similarity(3.2, -2.1, np.radians(1), 1.0, CENTRE)
+    img1 = warp(texture, affine)
+    x0, x1, y0, y1 = 200, 440, 120, 360
+    img1[y0:y1, x0:x1] = textured_image(H, W, seed=seed)[y0:y1, x0:x1]
+    results = {}
+    for thr in (0.03, 1e9):  # reference check vs. effectively none
+        flow = FrameToFrameOpticalFlow(OpticalFlowConfig(fb_threshold_sq=thr))
+        r0 = flow.process(0.0, texture)
+        r1 = flow.process(0.1, img1)
+        pred = apply_affine(affine, r0.positions)
+        m = 12  # patches (±7 px incl. margin) entirely on one side of the boundary
+        occluded = (pred[:, 0] > x0 + m) & (pred[:, 0] < x1 - m) & (pred[:, 1] > y0 + m) & (pred[:, 1] < y1 - m)
+        clear = (pred[:, 0] < x0 - m) | (pred[:, 0] > x1 + m) | (pred[:, 1] < y0 - m) | (pred[:, 1] > y1 + m)
+        survived = np.isin(r0.ids, r1.ids)
+        results[thr] = (survived[occluded].mean(), survived[clear].mean(), occluded.sum())
+    occluded_kept, clear_kept, n_occluded = results[0.03]
+    assert n_occluded >= 20
+    assert occluded_kept <= 0.05 and clear_kept >= 0.9
+    assert results[1e9][0] >= 0.9  # without the check the occluded tracks would be kept
+
+
+# --------------------------------------------------------------------------- detection
+
+
+def _cell_of(points, lvl, width, height, grid):
+    x0, y0, _, _ = cell_layout(width, height, grid)
+    q = points / 2**lvl
+    return [(int((y - y0) // grid), int((x - x0) // grid)) for x, y in q]
+
+
+def test_detection_grid_border_and_levels(texture):
+    cfg = OpticalFlowConfig()
+    pyr = build_pyramid(texture, cfg.levels)
+    pts, lvls = detect_new_points(pyr, cfg, np.zeros((0, 2)), np.zeros(0, np.int64))
+    assert set(lvls) >= {0, 2}  # corners on coarser levels too
+    for lvl in np.unique(lvls):
+        w, h = int(pyr.widths[lvl]), int(pyr.heights[lvl])
+        q = pts[lvls == lvl] / 2**lvl
+        assert np.all(q >= cfg.border) and np.all(q[:, 0] <= w - 1 - cfg.border)
+        assert np.all(q[:, 1] <= h - 1 - cfg.border)
+        cells = _cell_of(pts[lvls == lvl], lvl, w, h, cfg.grid_size)
+        assert len(set(cells)) == len(cells)  # at most one new corner per cell
+        assert np.all(np.asarray(cells) >= 0)
+    # Neighbouring-level rule: no new corner on level l in a cell holding one from l +- 1.
+    for lvl in np.unique(lvls):
+        w, h = int(pyr.widths[lvl]), int(pyr.heights[lvl])
+        cells = set(_cell_of(pts[lvls == lvl], lvl, w, h, cfg.grid_size))
+        for other in (lvl - 1, lvl + 1):
+            assert not cells & set(_cell_of(pts[lvls == other], lvl, w, h, cfg.grid_size))
+    # 640x480 level 0 has 16 x 12 cells, all textured.
+    assert np.sum(lvls == 0) == 16 * 12
+
+
+def test_ablation_detects_on_the_finest_level_only(texture):
+    flow = FrameToFrameOpticalFlow(OpticalFlowConfig(detect_all_levels=False))
+    r = flow.process(0.0, texture)
+    assert len(r) == 192 and np.all(r.levels == 0) and np.all(r.weights == 1.0)
+
+
+def test_existing_points_block_cells_of_neighbouring_levels_only(texture):
+    cfg = OpticalFlowConfig()
+    pyr = build_pyramid(texture, cfg.levels)
+
+    def new_cells(existing_level):
+        existing = np.array([[300.0, 220.0]])
+        pts, lvls = detect_new_points(pyr, cfg, existing, np.array([existing_level]))
+        out = {}
+        for lvl in (0, 2):
+            w, h = int(pyr.widths[lvl]), int(pyr.heights[lvl])
+            blocked = _cell_of(existing, lvl, w, h, cfg.grid_size)[0]
+            out[lvl] = blocked in _cell_of(pts[lvls == lvl], lvl, w, h, cfg.grid_size)
+        return out
+
+    assert new_cells(existing_level=5) == {0: True, 2: True}  # too far from both
+    assert new_cells(existing_level=1) == {0: False, 2: False}  # neighbour of both
+    assert new_cells(existing_level=2) == {0: True, 2: False}
+    assert new_cells(existing_level=0) == {0: False, 2: True}
+
+
+def test_detection_picks_the_strongest_fast_corner_of_each_cell(texture):
+    """Independent check with OpenCV's FAST on the whole image: per cell, the corner with the
+    highest response at the first threshold of the halving sequence that finds one."""
+    cfg = OpticalFlowConfig()
+    pts = detect_in_cells(texture, np.zeros((12, 16), bool), cfg)
+    mine = dict(zip(_cell_of(pts, 0, W, H, 40), map(tuple, pts)))
+    # This texture has a corner above the initial threshold in every cell.
+    kps = cv2.FastFeatureDetector_create(threshold=cfg.fast_threshold).detect(texture)
+    best: dict = {}
+    for k in kps:
+        x, y = k.pt
+        if not (19 <= x <= W - 20 and 19 <= y <= H - 20):
+            continue
+        cell = (int(y // 40), int(x // 40))
+        if cell not in best or k.response > best[cell][0]:
+            best[cell] = (k.response, (x, y))
+    assert len(best) == 192
+    same = sum(1 for c, (_, p) in best.items() if mine.get(c) == p)
+    assert same >= 0.95 * 192
+
+
+def test_fast_threshold_halving_finds_corners_in_low_contrast():
+    img = textured_image(H, W, seed=4, contrast=0.12)
+    found = FrameToFrameOpticalFlow(OpticalFlowConfig(detect_all_levels=False)).process(0, img)
+    no_halving = OpticalFlowConfig(detect_all_levels=False, fast_min_threshold=40)
+    strict = FrameToFrameOpticalFlow(no_halving).process(0, img)
+    assert len(found) > 150 and len(strict) < 0.5 * len(found)
+
+
+# --------------------------------------------------------------------------- frontend behaviour
+
+
+def test_sequence_ids_weights_and_positions(texture):
+    big = textured_image(700, 900, seed=5)
+    flow = FrameToFrameOpticalFlow()
+    previous = None
+    seen: set[int] = set()
+    for k in range(6):
+        affine = similarity(-100 - 4.0 * k, -80 - 2.5 * k, np.radians(0.5 * k), 1.0, (450, 350))
+        r = flow.process(0.05 * k, warp(big, affine, (W, H)))
+        np.testing.assert_array_equal(r.weights, 0.5 ** r.levels.astype(float))
+        assert np.all(np.diff(r.ids) > 0)
+        assert not (set(r.ids[r.new]) & seen)  # ids are never reused
+        seen |= set(r.ids)
+        if previous is not None:
+            r_prev, a_prev = previous
+            _, i0, i1 = np.intersect1d(r_prev.ids, r.ids, return_indices=True)
+            assert not r.new[i1].any() and len(i1) > 0.8 * len(r_prev)
+            # Map each tracked point back to the big image and forward again.
+            inv = cv2.invertAffineTransform(a_prev)
+            pred = apply_affine(affine, apply_affine(inv, r_prev.positions[i0]))
+            assert np.median(np.linalg.norm(r.positions[i1] - pred, axis=1)) < 0.1
+            np.testing.assert_array_equal(r.levels[i1], r_prev.levels[i0])
+        assert set(r.timing) == {"pyramid", "detection", "tracking", "total"}
+        previous = (r, affine)
+
+
+@pytest.mark.parametrize(
+    "bad, reason",
+    [
+        (None, "no image"),
+        (np.zeros((H, W), np.float32), "uint8 or uint16"),
+        (np.zeros((H, W, 3), np.uint8), "uint8 or uint16"),
+        (np.zeros((H // 2, W), np.uint8) + 7, "size"),
+        (np.full((H, W), 90, np.uint8), "blank"),
+    ],
+)
+def test_unusable_frames_warn_and_give_zero_tracks(texture, bad, reason):
+    affine = similarity(4.0, 2.0, 0.0, 1.0, CENTRE)
+    flow = FrameToFrameOpticalFlow()
+    r0 = flow.process(0.0, texture)
+    with pytest.warns(FrameRejectedWarning, match=reason):
+        rb = flow.process(0.1, bad)
+    assert len(rb) == 0 and rb.rejected and rb.positions.shape == (0, 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r2 = flow.process(0.2, warp(texture, affine))  # tracked from the last good frame
+    _, i0, i2 = np.intersect1d(r0.ids, r2.ids, return_indices=True)
+    assert len(i0) > 0.8 * len(r0)
+    assert np.median(np.linalg.norm(r2.positions[i2] - apply_affine(affine, r0.positions[i0]), axis=1)) < 0.1
+
+
+def test_kitti_sized_16_bit_images():
+    h, w = 370, 1226
+    img8 = textured_image(h, w, seed=6)
+    img16 = (img8.astype(np.uint16) * 200 + 300).astype(np.uint16)
+    affine = similarity(17.7, 3.3, np.radians(1), 1.0, (w / 2, h / 2))
+    p0, p1, r0, _ = track_pair(img16, warp(img16, affine), OpticalFlowConfig())
+    err = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1)
+    assert len(r0) > 200 and len(p0) > 0.7 * len(r0) and np.median(err) < 0.1
+
+
+@pytest.mark.filterwarnings("ignore::granite.optical_flow.FrameRejectedWarning")
+@pytest.mark.parametrize("shape", [(1, 1), (9, 13), (40, 30)])
+def test_tiny_images_do_not_crash(shape):
+    img = textured_image(*shape, seed=2)
+    flow = FrameToFrameOpticalFlow()
+    for k in range(3):
+        r = flow.process(float(k), np.roll(img, k, axis=1))
+        assert np.all(np.isfinite(r.positions))
+
+
+def test_template_cache_reuse_gives_identical_tracks(texture):
+    """The backward pass's templates are reused as the next forward pass's; the result must
+    equal a run that recomputes every template."""
+    cfg = OpticalFlowConfig()
+    a1 = similarity(6.0, 3.0, 0.02, 1.0, CENTRE)
+    a2 = similarity(11.0, 5.0, 0.035, 1.0, CENTRE)
+    flow = FrameToFrameOpticalFlow(cfg)
+    flow.process(0.0, texture)
+    flow.process(0.1, warp(texture, a1))
+    pyr_a, cache_a, rows = flow._pyramid, flow._cache, flow._rows
+    assert np.any(rows >= 0)
+    pyr_b = build_pyramid(warp(texture, a2), cfg.levels)
+    outputs = []
+    for use_cache in (True, False):
+        n = len(rows)
+        cache_in = cache_a if use_cache else new_template_cache(0, cfg.levels, 52)
+        outputs.append(track_points(
+            pyr_a.data, pyr_a.offsets, pyr_a.widths, pyr_a.heights,
+            pyr_b.data, pyr_b.offsets, pyr_b.widths, pyr_b.heights,
+            flow._points, flow._levels, rows if use_cache else np.full(n, -1), *cache_in,
+            *new_template_cache(n, cfg.levels, 52), pattern52(), 2.0, 6, 0.03, 2.0,
+        ))
+    for x, y in zip(*outputs):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_deterministic(texture):
+    affine = similarity(8.0, -3.0, 0.03, 1.01, CENTRE)
+    runs = [track_pair(texture, warp(texture, affine))[3] for _ in range(2)]
+    np.testing.assert_array_equal(runs[0].ids, runs[1].ids)
+    np.testing.assert_array_equal(runs[0].positions, runs[1].positions)
