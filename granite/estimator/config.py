@@ -41,6 +41,8 @@ class EstimatorConfig:
             is inserted at infinity (d = 0).
         entropy_iteration: Gauss-Newton iteration after which the keyframe decision is taken.
         keyframe_extra_iterations: extra iterations after a keyframe was inserted.
+        constant_velocity: not in the reference (which starts from the last pose): start each
+            frame's optimisation from a constant-velocity prediction.
     """
 
     keyframe_entropy_fraction: float = 0.995
@@ -52,6 +54,7 @@ class EstimatorConfig:
     min_triangulation_distance: float = 0.03
     entropy_iteration: int = 4
     keyframe_extra_iterations: int = 2
+    constant_velocity: bool = True
 
     def __post_init__(self) -> None:
         if not 0.0 < self.keyframe_entropy_fraction <= 1.0:
@@ -63,8 +66,9 @@ class EstimatorConfig:
                 raise ConfigError(f"estimator: {name} must be an integer >= 0, got {value!r}")
         if not (math.isfinite(self.min_triangulation_distance) and self.min_triangulation_distance >= 0):
             raise ConfigError("estimator: min_triangulation_distance must be >= 0")
-        if not isinstance(self.previous_frame_as_keyframe, bool):
-            raise ConfigError("estimator: previous_frame_as_keyframe must be true or false")
+        for name in ("previous_frame_as_keyframe", "constant_velocity"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"estimator: {name} must be true or false")
 
 
 def _from_table(cls, table: Mapping[str, Any], section: str):

@@ -26,7 +26,7 @@ from granite.estimator.diagnostics import FrameDiagnostics
 from granite.estimator.initialization import initialize_two_view
 from granite.estimator.keyframes import EntropyKeyframeSelector
 from granite.estimator.triangulation import triangulate_bearings
-from granite.geometry import se3_inverse
+from granite.geometry import se3_exp, se3_inverse, se3_log
 from granite.optical_flow import FrameToFrameOpticalFlow, OpticalFlowResult
 
 
@@ -69,6 +69,8 @@ class MonocularVO:
         self.submap = 0
         self._tracks: dict[int, _Tracks] = {}
         self._last_pose = np.eye(4)
+        self._motion: tuple[np.ndarray, float] | None = None  # (T_prev_last, dt) of the last step
+        self._last_time = 0.0
         self._map_initialized = False
         self._previous_frame: int | None = None
         self.keyframe_log: list[tuple[int, int]] = []  # (frame id, sub-map) of every keyframe
@@ -87,6 +89,7 @@ class MonocularVO:
         self._previous_frame = None
         self.submap += 1
         self._last_pose = np.eye(4)
+        self._motion = None
 
     def window_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
         """Finite landmarks of the window: world points (M, 3) and inverse distances (M,)."""
@@ -105,6 +108,17 @@ class MonocularVO:
         if not points:
             return np.zeros((0, 3)), np.zeros(0)
         return np.concatenate(points), np.concatenate(inv)
+
+    def _predict_pose(self, timestamp: float) -> np.ndarray:
+        """Initial guess ``T_w_c`` for a new frame: constant velocity (the last relative motion,
+        scaled to the elapsed time, so frame drops are extrapolated), or the last pose."""
+        if not self.config.estimator.constant_velocity or self._motion is None:
+            return self._last_pose
+        T_prev_last, dt = self._motion
+        if dt <= 0:
+            return self._last_pose
+        ratio = min((timestamp - self._last_time) / dt, 5.0)
+        return self._last_pose @ se3_exp(ratio * se3_log(T_prev_last))
 
     def _connected(self, frame_id: int) -> tuple[int, int]:
         return self.window.num_connected(frame_id)
@@ -279,7 +293,8 @@ class MonocularVO:
         )
         win = self.window
         first_of_submap = not win.frame_ids
-        win.add_frame(frame_id, self._last_pose if not first_of_submap else np.eye(4), is_keyframe=first_of_submap)
+        guess = np.eye(4) if first_of_submap else self._predict_pose(timestamp)
+        win.add_frame(frame_id, guess, is_keyframe=first_of_submap)
         keyframe_taken = False
         if first_of_submap:
             self._add_landmarks_hosted_by(frame_id)  # all at infinity: no other frame yet
@@ -316,7 +331,9 @@ class MonocularVO:
                 win.marginalize(marg)
                 for f in marg:
                     self._tracks.pop(f, None)
-            self._last_pose = T_w_c
+            if self._previous_frame is not None and self._map_initialized:
+                self._motion = (se3_inverse(self._last_pose) @ T_w_c, timestamp - self._last_time)
+            self._last_pose, self._last_time = T_w_c, timestamp
             self._previous_frame = frame_id
 
         db = win.landmarks
