@@ -1,0 +1,419 @@
+"""Scenario files: TOML -> a typed, validated, immutable tree of dataclasses.
+
+Every field has a default, a type and an allowed range; an unknown key, a wrong type or a value
+out of range raises :class:`granite.errors.ConfigError` naming the file and the dotted key,
+before anything is rendered. Units: metres, seconds, degrees (angles in the file), Hz.
+
+World frame: z up, metres; the terrain is centred on the origin. Flight altitudes are metres
+above the terrain surface at the flight's reference point (``center`` / ``start``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, get_origin, get_type_hints
+
+from granite.errors import ConfigError
+
+SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+
+
+def _f(default: Any, lo: float | None = None, hi: float | None = None, *,
+       choices: tuple | None = None, length: int | None = None, doc: str = "") -> Any:
+    """A dataclass field with validation metadata (closed range ``[lo, hi]``)."""
+    meta = {"lo": lo, "hi": hi, "choices": choices, "length": length, "doc": doc}
+    if isinstance(default, (list, tuple)):
+        return field(default_factory=lambda d=tuple(default): d, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Intrinsics in the project's pixel convention (centre of the top-left pixel = (0, 0)).
+
+    ``pinhole``: fx, fy, cx, cy. ``kb4``: an equidistant fisheye (r = fx * theta) written as
+    Kannala-Brandt with k1..k4 = 0; it needs a square image, fx == fy and the principal point
+    at the image centre; pixels farther than width / 2 from the centre see nothing.
+    """
+
+    model: str = _f("pinhole", choices=("pinhole", "kb4"))
+    width: int = _f(640, 16, 8192)
+    height: int = _f(480, 16, 8192)
+    fx: float = _f(400.0, 1.0, 1e5)
+    fy: float = _f(400.0, 1.0, 1e5)
+    cx: float = _f(319.5, -1e4, 1e4)
+    cy: float = _f(239.5, -1e4, 1e4)
+    rate_hz: float = _f(20.0, 0.1, 1000.0)
+    clip_start: float = _f(0.05, 1e-4, 10.0)
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Cycles settings and image post-processing."""
+
+    samples: int = _f(4, 1, 4096)
+    denoise: bool = _f(False, doc="OpenImageDenoise (CPU); rarely needed: the lighting is noise-free")
+    adaptive_threshold: float = _f(0.0, 0.0, 1.0, doc="0 disables adaptive sampling")
+    max_bounces: int = _f(0, 0, 16, doc="0 = direct sun + analytic sky light (noise-free)")
+    exposure: float = _f(0.0, -10.0, 10.0, doc="stops, applied to linear radiance")
+    sensor_noise: float = _f(0.0, 0.0, 64.0, doc="std of Gaussian read noise in 8-bit DN")
+    motion_blur: bool = _f(False)
+    shutter: float = _f(0.5, 0.0, 1.0, doc="exposure time as a fraction of the frame interval")
+    threads: int = _f(2, 1, 256)
+    grayscale: bool = _f(False)
+    depth_format: str = _f("npy", choices=("npy", "inv16"))
+
+
+@dataclass(frozen=True)
+class TerrainConfig:
+    """Procedural Mars-analogue terrain (see :mod:`simulation.terrain`)."""
+
+    extent: float = _f(256.0, 8.0, 4096.0, doc="side of the detailed square (m)")
+    resolution: float = _f(0.5, 0.05, 16.0, doc="grid spacing of the detailed square (m)")
+    far_extent: float = _f(3000.0, 0.0, 1e5, doc="coarse apron up to this distance (m)")
+    relief: float = _f(6.0, 0.0, 500.0, doc="amplitude of the large-scale relief (m)")
+    relief_wavelength: float = _f(120.0, 1.0, 1e4)
+    ridges: float = _f(0.35, 0.0, 1.0, doc="weight of ridged noise")
+    plains: float = _f(0.6, 0.0, 1.0, doc="how strongly smooth plains flatten the relief")
+    detail: float = _f(0.25, 0.0, 10.0, doc="amplitude of metre-scale undulations (m)")
+    crater_density: float = _f(6.0, 0.0, 500.0, doc="craters per hectare with D >= min")
+    crater_min_diameter: float = _f(3.0, 0.2, 1000.0)
+    crater_max_diameter: float = _f(45.0, 0.2, 5000.0)
+    crater_depth_ratio: float = _f(0.15, 0.0, 0.5, doc="depth / diameter of a fresh crater")
+    rock_density: float = _f(0.3, 0.0, 10.0, doc="rocks per m^2 with D >= min")
+    rock_min_diameter: float = _f(0.1, 0.01, 20.0)
+    rock_max_diameter: float = _f(2.0, 0.01, 50.0)
+    rock_size_exponent: float = _f(2.2, 0.5, 6.0, doc="N(>D) ~ D^-exponent")
+    rock_instances: bool = _f(False, doc="Blender instances instead of one merged mesh")
+    texture_scales: tuple = _f((0.4, 1.8, 8.1, 36.5), 0.01, 1000.0, doc="tile sizes (m)")
+    texture_contrast: float = _f(0.55, 0.0, 1.0, doc="albedo modulation by the tile")
+    bump_strength: float = _f(1.0, 0.0, 10.0)
+    color: tuple = _f((0.40, 0.205, 0.11), 0.0, 1.0, length=3, doc="linear albedo")
+    color_dark: tuple = _f((0.16, 0.10, 0.07), 0.0, 1.0, length=3)
+    rock_color: tuple = _f((0.18, 0.12, 0.09), 0.0, 1.0, length=3)
+
+
+@dataclass(frozen=True)
+class LightingConfig:
+    """Sun and sky. Azimuth: compass degrees, clockwise from north (+y) to east (+x)."""
+
+    sun_elevation: float = _f(25.0, 1.0, 90.0)
+    sun_azimuth: float = _f(135.0, -360.0, 360.0)
+    sun_strength: float = _f(5.0, 0.0, 1000.0, doc="irradiance (W/m^2 in Blender units)")
+    sun_angle: float = _f(0.35, 0.0, 30.0, doc="angular diameter (deg)")
+    sky_color: tuple = _f((0.80, 0.56, 0.34), 0.0, 1.0, length=3, doc="linear RGB")
+    sky_strength: float = _f(0.45, 0.0, 100.0)
+
+
+@dataclass(frozen=True)
+class FrameDropsConfig:
+    """Seeded bursts of missing images (ground truth is kept for every frame)."""
+
+    probability: float = _f(0.0, 0.0, 1.0, doc="per-frame probability that a burst starts")
+    min_burst: int = _f(1, 1, 10000)
+    max_burst: int = _f(5, 1, 10000)
+    keep_first: int = _f(20, 0, 1000000, doc="frames at the start that are never dropped")
+
+
+# ------------------------------------------------------------------------------- flights
+
+
+@dataclass(frozen=True)
+class _FlightBase:
+    duration: float = _f(20.0, 0.1, 36000.0)
+    clearance: float = _f(1.0, 0.0, 100.0, doc="minimum height above terrain and rocks (m)")
+    pitch: float = _f(45.0, -90.0, 90.0, doc="camera look-down angle below the horizon (deg)")
+
+
+@dataclass(frozen=True)
+class SpiralFlight(_FlightBase):
+    """Helical ascent then descent at constant speed (paper Fig. 4)."""
+
+    type: str = "spiral"
+    duration: float = _f(40.0, 0.1, 36000.0)
+    center: tuple = _f((0.0, 0.0), -1e5, 1e5, length=2)
+    radius: float = _f(12.0, 0.5, 1e4)
+    altitude_min: float = _f(4.0, 0.0, 1e4)
+    altitude_max: float = _f(40.0, 0.0, 1e4)
+    speed: float = _f(4.0, 0.01, 100.0, doc="constant path speed (m/s)")
+    yaw_offset: float = _f(90.0, -360.0, 360.0, doc="0 = look along the path, 90 = inward")
+
+
+@dataclass(frozen=True)
+class RotationFlight(_FlightBase):
+    """Translate, rotate in place about the camera centre, translate again."""
+
+    type: str = "rotation"
+    start: tuple = _f((-10.0, 0.0), -1e5, 1e5, length=2)
+    heading: float = _f(0.0, -360.0, 360.0, doc="compass heading of the first leg (deg)")
+    altitude: float = _f(10.0, 0.0, 1e4)
+    leg_length: float = _f(10.0, 0.0, 1e4, doc="length of each straight leg (m)")
+    rotation_duration: float = _f(8.0, 0.1, 1e4, doc="the legs share the rest of duration")
+    yaw_sweep: float = _f(180.0, -1080.0, 1080.0, doc="total yaw turned in place (deg)")
+    pitch_sweep: float = _f(20.0, 0.0, 89.0, doc="amplitude of the pitch nod in place (deg)")
+
+
+@dataclass(frozen=True)
+class HoverFlight(_FlightBase):
+    """Station keeping with small smooth drifts."""
+
+    type: str = "hover"
+    center: tuple = _f((0.0, 0.0), -1e5, 1e5, length=2)
+    altitude: float = _f(8.0, 0.0, 1e4)
+    amplitude: float = _f(0.3, 0.0, 100.0, doc="position drift amplitude (m)")
+    yaw_amplitude: float = _f(5.0, 0.0, 180.0, doc="deg")
+    heading: float = _f(0.0, -360.0, 360.0)
+    period: float = _f(6.0, 0.1, 1e4, doc="period of the slowest drift (s)")
+
+
+@dataclass(frozen=True)
+class SurveyFlight(_FlightBase):
+    """Lawnmower pattern: parallel legs joined by smooth turns (quintic spline)."""
+
+    type: str = "survey"
+    center: tuple = _f((0.0, 0.0), -1e5, 1e5, length=2)
+    width: float = _f(40.0, 0.1, 1e4, doc="across-track size of the area (m)")
+    length: float = _f(40.0, 0.1, 1e4, doc="along-track leg length (m)")
+    spacing: float = _f(10.0, 0.1, 1e4, doc="distance between legs (m)")
+    heading: float = _f(0.0, -360.0, 360.0, doc="compass heading of the first leg")
+    altitude: float = _f(20.0, 0.0, 1e4)
+
+
+@dataclass(frozen=True)
+class AggressiveFlight(_FlightBase):
+    """Fast, low, randomly turning flight with banking (seeded quintic spline)."""
+
+    type: str = "aggressive"
+    center: tuple = _f((0.0, 0.0), -1e5, 1e5, length=2)
+    radius: float = _f(25.0, 1.0, 1e4, doc="waypoints within this distance of the center")
+    altitude_min: float = _f(3.0, 0.0, 1e4)
+    altitude_max: float = _f(8.0, 0.0, 1e4)
+    speed: float = _f(7.0, 0.01, 100.0, doc="mean path speed (m/s)")
+    turn_distance: float = _f(8.0, 0.5, 1e4, doc="mean distance between turns (m)")
+    bank: float = _f(1.0, 0.0, 5.0, doc="0 = level camera, 1 = quadrotor-like banking")
+
+
+FLIGHT_TYPES: dict[str, type] = {
+    "spiral": SpiralFlight,
+    "rotation": RotationFlight,
+    "hover": HoverFlight,
+    "survey": SurveyFlight,
+    "aggressive": AggressiveFlight,
+}
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A complete, validated scenario. ``source`` is the file it was read from."""
+
+    name: str
+    description: str = ""
+    seed: int = 0
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    terrain: TerrainConfig = field(default_factory=TerrainConfig)
+    lighting: LightingConfig = field(default_factory=LightingConfig)
+    flight: Any = field(default_factory=SpiralFlight)
+    frame_drops: FrameDropsConfig = field(default_factory=FrameDropsConfig)
+    source: Path | None = None
+
+    @property
+    def n_frames(self) -> int:
+        """Frames of the whole flight at ``camera.rate_hz`` (t = i / rate, t <= duration)."""
+        return int(math.floor(self.flight.duration * self.camera.rate_hz + 1e-9)) + 1
+
+
+# ------------------------------------------------------------------------------- loading
+
+_SECTIONS = {
+    "camera": CameraConfig,
+    "render": RenderConfig,
+    "terrain": TerrainConfig,
+    "lighting": LightingConfig,
+    "frame_drops": FrameDropsConfig,
+}
+
+
+def _check_value(value: Any, typ: Any, meta: dict, where: str, err) -> Any:
+    if typ is bool:
+        if not isinstance(value, bool):
+            raise err(f"{where} must be true or false, got {value!r}")
+        return value
+    if typ is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise err(f"{where} must be an integer, got {value!r}")
+    elif typ is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise err(f"{where} must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise err(f"{where} must be finite, got {value!r}")
+    elif typ is str:
+        if not isinstance(value, str):
+            raise err(f"{where} must be a string, got {value!r}")
+    elif typ is tuple:
+        if not isinstance(value, (list, tuple)) or not value:
+            raise err(f"{where} must be a non-empty list of numbers, got {value!r}")
+        n = meta.get("length")
+        if n is not None and len(value) != n:
+            raise err(f"{where} must have {n} elements, got {len(value)}")
+        return tuple(_check_value(v, float, meta, f"{where}[{i}]", err) for i, v in enumerate(value))
+    choices = meta.get("choices")
+    if choices is not None and value not in choices:
+        raise err(f"{where} must be one of {', '.join(map(repr, choices))}, got {value!r}")
+    lo, hi = meta.get("lo"), meta.get("hi")
+    if lo is not None and value < lo or hi is not None and value > hi:
+        raise err(f"{where} must be in [{lo:g}, {hi:g}], got {value!r}")
+    return value
+
+
+def _build(cls: type, table: Any, prefix: str, err, skip: tuple = ()) -> Any:
+    if not isinstance(table, dict):
+        raise err(f"[{prefix}] must be a table")
+    hints = get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.name not in skip}
+    kwargs = {}
+    for key, value in table.items():
+        if key not in fields:
+            known = ", ".join(sorted(fields))
+            raise err(f"unknown key {prefix}.{key} (known keys: {known})")
+        typ = hints[key]
+        typ = tuple if get_origin(typ) is tuple or typ is tuple else typ
+        kwargs[key] = _check_value(value, typ, dict(fields[key].metadata), f"{prefix}.{key}", err)
+    return cls(**kwargs)
+
+
+def _cross_checks(s: Scenario, err) -> None:
+    c, t, f = s.camera, s.terrain, s.flight
+    if c.model == "kb4":
+        if c.width != c.height:
+            raise err("camera.width must equal camera.height for the kb4 model (Cycles renders "
+                      "the equidistant fisheye exactly only on square images)")
+        if c.fx != c.fy:
+            raise err("camera.fy must equal camera.fx for the kb4 (equidistant fisheye) model")
+        if abs(c.cx - (c.width - 1) / 2) > 1e-9 or abs(c.cy - (c.height - 1) / 2) > 1e-9:
+            raise err(f"camera.cx, camera.cy must be the image centre ({(c.width - 1) / 2:g}, "
+                      f"{(c.height - 1) / 2:g}) for the kb4 model")
+        if c.width / c.fx > 2 * math.pi:
+            raise err("camera.fx too small: the fisheye would cover more than 360 degrees")
+    if t.crater_min_diameter > t.crater_max_diameter:
+        raise err("terrain.crater_min_diameter must not exceed terrain.crater_max_diameter")
+    if t.rock_min_diameter > t.rock_max_diameter:
+        raise err("terrain.rock_min_diameter must not exceed terrain.rock_max_diameter")
+    if t.resolution * 4 > t.extent:
+        raise err("terrain.resolution must be at most a quarter of terrain.extent")
+    cells = (t.extent / t.resolution) ** 2
+    if cells > 4.2e6:
+        raise err(f"terrain.extent / terrain.resolution gives {cells:.3g} grid cells (max 4.2e6)")
+    if s.frame_drops.min_burst > s.frame_drops.max_burst:
+        raise err("frame_drops.min_burst must not exceed frame_drops.max_burst")
+    for lo, hi in (("altitude_min", "altitude_max"),):
+        if hasattr(f, lo) and getattr(f, lo) > getattr(f, hi):
+            raise err(f"flight.{lo} must not exceed flight.{hi}")
+    if len(t.texture_scales) > 6:
+        raise err("terrain.texture_scales takes at most 6 tile sizes")
+    if f.type == "rotation" and f.rotation_duration >= f.duration:
+        raise err("flight.rotation_duration must be shorter than flight.duration")
+
+
+def parse_scenario(data: dict, source: str | Path = "<scenario>") -> Scenario:
+    """Build a :class:`Scenario` from decoded TOML ``data`` (``source`` names it in errors)."""
+    src = Path(source)
+
+    def err(message: str) -> ConfigError:
+        return ConfigError(f"{src}: {message}")
+
+    data = dict(data)
+    kwargs: dict[str, Any] = {}
+    for key in ("name", "description"):
+        if key in data:
+            kwargs[key] = _check_value(data.pop(key), str, {}, key, err)
+    if "seed" in data:
+        kwargs["seed"] = _check_value(data.pop("seed"), int, {"lo": 0, "hi": 2**31 - 1}, "seed", err)
+    for key, cls in _SECTIONS.items():
+        if key in data:
+            kwargs[key] = _build(cls, data.pop(key), key, err)
+    if "flight" in data:
+        table = data.pop("flight")
+        if not isinstance(table, dict):
+            raise err("[flight] must be a table")
+        kind = table.get("type", "spiral")
+        if kind not in FLIGHT_TYPES:
+            raise err(f"flight.type must be one of {', '.join(FLIGHT_TYPES)}, got {kind!r}")
+        body = {k: v for k, v in table.items() if k != "type"}
+        kwargs["flight"] = _build(FLIGHT_TYPES[kind], body, "flight", err, skip=("type",))
+    if data:
+        known = ", ".join(["name", "description", "seed", "flight", *_SECTIONS])
+        raise err(f"unknown key {next(iter(data))} (known keys: {known})")
+    kwargs.setdefault("name", src.stem)
+    scenario = Scenario(**kwargs, source=None if str(source) == "<scenario>" else src)
+    _cross_checks(scenario, err)
+    return scenario
+
+
+def resolve_scenario_path(name_or_path: str | Path) -> Path:
+    """A path to an existing file, or the name of a bundled scenario (``scenarios/NAME.toml``)."""
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        if not p.is_file():
+            raise ConfigError(f"{p}: scenario file not found")
+        return p
+    bundled = SCENARIO_DIR / f"{p.name}.toml"
+    if not bundled.is_file():
+        names = ", ".join(sorted(q.stem for q in SCENARIO_DIR.glob("*.toml")))
+        raise ConfigError(f"{name_or_path}: no such scenario file or bundled scenario ({names})")
+    return bundled
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """Read and validate a scenario file (or bundled scenario name)."""
+    path = resolve_scenario_path(name_or_path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{path}: invalid TOML: {error}") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError(f"{path}: cannot read scenario: {error}") from None
+    return parse_scenario(data, path)
+
+
+def with_overrides(s: Scenario, width: int | None = None, height: int | None = None,
+                   samples: int | None = None, grayscale: bool | None = None,
+                   depth_format: str | None = None) -> Scenario:
+    """A copy with command-line overrides. A new image size rescales the intrinsics (same
+    field of view: fx, cx scale with the width, fy, cy with the height)."""
+    cam, ren = s.camera, s.render
+
+    def err(message: str) -> ConfigError:
+        return ConfigError(f"command line: {message}")
+
+    if width is not None or height is not None:
+        w = _check_value(width or cam.width, int, {"lo": 16, "hi": 8192}, "--width", err)
+        h = _check_value(height or cam.height, int, {"lo": 16, "hi": 8192}, "--height", err)
+        sx, sy = w / cam.width, h / cam.height
+        if cam.model == "kb4" and abs(sx - sy) > 1e-12:
+            raise err("the kb4 camera keeps its aspect ratio: --width/--height must scale equally")
+        cam = dataclasses.replace(cam, width=w, height=h, fx=cam.fx * sx, fy=cam.fy * sy,
+                                  cx=(cam.cx + 0.5) * sx - 0.5, cy=(cam.cy + 0.5) * sy - 0.5)
+    changes: dict[str, Any] = {}
+    if samples is not None:
+        changes["samples"] = _check_value(samples, int, {"lo": 1, "hi": 4096}, "--samples", err)
+    if grayscale is not None:
+        changes["grayscale"] = bool(grayscale)
+    if depth_format is not None:
+        changes["depth_format"] = _check_value(
+            depth_format, str, {"choices": ("npy", "inv16")}, "--depth-format", err)
+    ren = dataclasses.replace(ren, **changes)
+    return dataclasses.replace(s, camera=cam, render=ren)
+
+
+def scenario_to_dict(s: Scenario) -> dict:
+    """Plain-data view of a scenario (for the manifest)."""
+    out = dataclasses.asdict(s)
+    out["source"] = None if s.source is None else str(s.source)
+    out["flight"]["type"] = s.flight.type
+    return out
