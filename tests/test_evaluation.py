@@ -323,3 +323,23 @@ def test_evaluate_dict_on_exact_monocular_copy() -> None:
     expected = quad(lambda x: math.sqrt(0.25 + math.cos(x) ** 2), 0, 20, limit=200)[0]
     assert d["path_length"] == pytest.approx(expected, rel=1e-3)
     assert d["align"] == "sim3" and d["delta"] == 4.0
+
+
+def test_collinear_path_is_aligned_with_orientations() -> None:
+    """A straight leg followed by a turn in place: positions are collinear, so the rotation
+    about the line comes from the orientations; a known Sim(3) is recovered exactly."""
+    t = np.linspace(0.0, 10.0, 101)
+    p = np.c_[np.minimum(t, 5.0), 0 * t, 0 * t]  # leg along x, then standing still
+    yaw = np.where(t > 5.0, (t - 5.0) * 0.6, 0.0)
+    R = np.stack([rot_z(y) for y in yaw])
+    gt = Trajectory(t, make_poses(R, p))
+    est_poses = sim3_transform(gt.poses, 0.25, rot(3), np.array([2.0, -1.0, 0.5]))
+    res = ate(Trajectory(t, est_poses), gt, "sim3")
+    assert res.rmse < 1e-9
+    assert res.scales[0] == pytest.approx(4.0, rel=1e-9)
+    assert not res.skipped_submaps
+
+
+def rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

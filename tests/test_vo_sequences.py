@@ -32,3 +32,27 @@ def test_smooth_flights_are_tracked_completely_and_accurately(name):
     assert ev.ate.rmse / ev.path_length < 0.02
     initialised = next(i for i, d in enumerate(result.diagnostics) if d.state == "tracking")
     assert initialised < 20  # within one second of flight
+
+
+def _angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def test_rotation_in_place_is_tracked_within_one_degree():
+    from granite.geometry import interpolate_poses
+
+    result, ev = _run("rotation")
+    assert ev.restarts == 0
+    assert ev.tracking_percentage == pytest.approx(100.0)
+    dataset = open_dataset(SEQUENCES / "rotation")
+    est = result.trajectory
+    gt = interpolate_poses(dataset.ground_truth.timestamps, dataset.ground_truth.poses, est.timestamps)
+    # The sweep: from the last frame before the ground truth starts turning to the end.
+    turned = [_angle_deg(gt[0, :3, :3].T @ g[:3, :3]) for g in gt]
+    start = next(i for i, a in enumerate(turned) if a > 0.5) - 1
+    assert max(turned) > 90  # the asset really holds a large in-place turn
+    errors = [
+        _angle_deg((est.poses[start, :3, :3].T @ e[:3, :3]).T @ (gt[start, :3, :3].T @ g[:3, :3]))
+        for e, g in zip(est.poses[start:], gt[start:])
+    ]
+    assert max(errors) < 1.0

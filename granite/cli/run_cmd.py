@@ -8,6 +8,7 @@ import json
 import sys
 from pathlib import Path
 
+from granite.errors import GraniteError
 from granite.estimator.config import VoConfig
 from granite.estimator.records import FrameRecord, write_records
 from granite.estimator.runner import run_vo, write_run
@@ -88,8 +89,12 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
     write_records(out / "landmarks.npz", records)
     evaluation = None
     if dataset.ground_truth is not None:
-        evaluation = evaluate(result.trajectory, dataset.ground_truth, delta=delta).to_dict()
-        atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=2) + "\n")
+        try:
+            evaluation = evaluate(result.trajectory, dataset.ground_truth, delta=delta).to_dict()
+        except GraniteError as error:  # the run itself succeeded: keep its outputs
+            print(f"warning: evaluation skipped: {error}", file=sys.stderr)
+        else:
+            atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=2) + "\n")
     if view is not None:
         view.finish(result.trajectory)
     return result, evaluation

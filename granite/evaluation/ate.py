@@ -7,9 +7,12 @@ truth (paper Fig. 3: each sub-map has its own origin and scale); ``"none"`` comp
 positions. The error of a pose is the distance between its aligned position and the ground
 truth position; statistics are over all associated poses of all aligned sub-maps.
 
-A sub-map whose alignment is undetermined (fewer than 3 associated poses, all positions
-coincident or collinear) is left out and reported in ``skipped_submaps``; if none can be
-aligned an InputError is raised.
+When the positions of a sub-map are collinear (a straight leg, possibly with turns in place),
+Umeyama cannot fix the rotation about that line; the rotation is then taken from the
+orientations (chordal mean of ``R_gt R_est^T``) and scale and translation from the positions.
+A sub-map whose alignment is still undetermined (fewer than 3 associated poses, all positions
+coincident) is left out and reported in ``skipped_submaps``; if none can be aligned an
+InputError is raised.
 """
 
 from __future__ import annotations
@@ -68,6 +71,23 @@ def align_poses(poses: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np
     return out
 
 
+def _align_with_orientations(est: np.ndarray, gt: np.ndarray, with_scale: bool):
+    """Similarity from orientations (rotation) and positions (scale, translation)."""
+    M = np.einsum("nij,nkj->ik", gt[:, :3, :3], est[:, :3, :3])  # sum of R_gt R_est^T
+    u, _, vt = np.linalg.svd(M)
+    R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    p_est, p_gt = est[:, :3, 3], gt[:, :3, 3]
+    a = (p_est - p_est.mean(axis=0)) @ R.T
+    b = p_gt - p_gt.mean(axis=0)
+    denom = float(np.sum(a * a))
+    if denom <= 1e-24:
+        raise ValueError("umeyama alignment is degenerate: all points coincide")
+    s = float(np.sum(a * b) / denom) if with_scale else 1.0
+    if s <= 0:
+        raise ValueError("alignment from orientations gives a non-positive scale")
+    return s, R, p_gt.mean(axis=0) - s * R @ p_est.mean(axis=0)
+
+
 def ate(est: Trajectory, gt: Trajectory, align: str = "sim3") -> AteResult:
     """ATE of ``est`` against ``gt`` with per-sub-map ``align`` (see the module docstring)."""
     if align not in ALIGNMENTS:
@@ -86,10 +106,14 @@ def ate(est: Trajectory, gt: Trajectory, align: str = "sim3") -> AteResult:
             scales[int(sid)] = 1.0
             transforms[int(sid)] = (1.0, np.eye(3), np.zeros(3))
             continue
+        with_scale = align == "sim3"
         try:
-            s, R, t = umeyama_alignment(
-                est_poses[mask, :3, 3], gt_poses[mask, :3, 3], with_scale=(align == "sim3")
-            )
+            try:
+                s, R, t = umeyama_alignment(est_poses[mask, :3, 3], gt_poses[mask, :3, 3], with_scale)
+            except ValueError as error:
+                if "collinear" not in str(error):
+                    raise
+                s, R, t = _align_with_orientations(est_poses[mask], gt_poses[mask], with_scale)
         except ValueError as error:
             skipped[int(sid)] = str(error)
             keep[mask] = False
