@@ -1,12 +1,22 @@
-"""Benchmark of one Gauss-Newton iteration of the sliding-window bundle adjustment.
+"""Benchmark of the sliding-window bundle adjustment: per GN iteration and per frame.
 
-Window of the reference size: 11 keyframes + 3 recent frames (14 poses), about 600 landmarks
-and 3000 observations (synthetic scene, pinhole 640x480, 0.5 px noise). Prints milliseconds
-per GN iteration (linearisation + landmark Schur complement + priors + dense 84x84 solve +
-back-substitution + update) with a per-stage breakdown. Numba compilation is excluded: a
-warm-up run is done first (kernels are cached on disk with ``cache=True``).
+1. One Gauss-Newton iteration on a window of the reference size: 11 keyframes + 3 recent
+   frames (14 poses), about 600 landmarks and 3000 observations (synthetic scene, pinhole
+   640x480, 0.5 px noise). Prints milliseconds per GN iteration (linearisation + landmark Schur
+   complement + priors + dense 84x84 solve + back-substitution + update) with a per-stage
+   breakdown, and the whole ``optimize()`` call (packing, final cost, write-back included).
+2. Per frame, the backend calls the VO pipeline makes on a sliding synthetic sequence (every
+   second frame a keyframe, ~80 new landmarks per keyframe, steady window of 11 keyframes +
+   3 frames with ~900 landmarks / ~5000 observations): ``add_frame``, ``add_landmark``, one
+   ``add_observation`` per observation (or one ``add_observations`` batch with ``--batch``),
+   ``optimize(snapshot_iteration=3)`` + negative entropy, ``num_connected`` (3x),
+   ``remove_outliers``, ``select_frames_to_marginalize`` + ``marginalize``. Prints the
+   median milliseconds per frame over the steady-state frames with a per-call breakdown.
 
-Usage: ``python benchmarks/bench_ba.py [--repeats N]``
+Numba compilation is excluded: a warm-up run is done first (kernels are cached on disk with
+``cache=True``).
+
+Usage: ``python benchmarks/bench_ba.py [--repeats N] [--batch] [--no-sequence]``
 """
 
 from __future__ import annotations
@@ -20,14 +30,19 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from granite.backend import BackendConfig, pose_delta  # noqa: E402
+from granite.backend import BackendConfig, SlidingWindow, pose_delta  # noqa: E402
 from granite.backend.synthetic import build_window, make_scene  # noqa: E402
+from granite.geometry import decoupled_increment  # noqa: E402
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=20, help="timed optimize() calls")
     parser.add_argument("--iterations", type=int, default=7, help="GN iterations per call")
+    parser.add_argument("--batch", action="store_true",
+                        help="per-frame benchmark: add observations with add_observations()")
+    parser.add_argument("--no-sequence", action="store_true",
+                        help="skip the per-frame benchmark (it builds a 50-frame scene, ~3 s)")
     args = parser.parse_args()
 
     scene = make_scene(num_frames=14, num_points=600, obs_per_landmark=6, recent_frames=3,
@@ -75,7 +90,82 @@ def main() -> int:
           f"for {args.iterations} iterations")
     print(f"final cost {report.final_cost:.1f} (initial {report.initial_cost:.1f})")
     accuracy(scene, length)
+    if not args.no_sequence:
+        per_frame(args.batch)
     return 0
+
+
+def per_frame(batch: bool) -> None:
+    """Backend time per frame with the call pattern of the VO pipeline on a sliding sequence."""
+    scene = make_scene(num_frames=50, num_points=2000, obs_per_landmark=10, keyframe_every=2,
+                       max_level=2, baseline=0.1, seed=0)
+    hosted: dict[int, list[int]] = {}
+    for i, lm_id in enumerate(scene.lm_ids):
+        hosted.setdefault(scene.lm_host[i], []).append(i)
+    by_frame: dict[int, list] = {}
+    for obs in scene.observations:
+        by_frame.setdefault(obs[1], []).append(obs)
+    rng = np.random.default_rng(7)
+    warmup = 16  # frames before the window is full (not timed)
+
+    def run() -> tuple[list[dict[str, float]], list[tuple[int, int, int]]]:
+        win = SlidingWindow(scene.camera, BackendConfig())
+        frames, sizes = [], []
+        for k, fid in enumerate(scene.frame_ids):
+            t: dict[str, float] = {}
+            t0 = time.perf_counter()
+            T = scene.poses[k] if k == 0 else decoupled_increment(
+                scene.poses[k], np.concatenate([rng.normal(0, 0.005, 3),
+                                                rng.normal(0, 0.002, 3)]))
+            win.add_frame(fid, T, is_keyframe=scene.keyframe[k])
+            for i in hosted.get(fid, ()):
+                win.add_landmark(scene.lm_ids[i], fid, scene.lm_bearing[i],
+                                 scene.lm_inv_dist[i] * (1.0 + rng.normal(0, 0.05)))
+            t1 = time.perf_counter()
+            rows = by_frame.get(fid, [])
+            if batch:
+                win.add_observations(fid, [o[0] for o in rows], np.array([o[2] for o in rows]),
+                                     [o[3] for o in rows], skip_unknown=True)
+            else:
+                db = win.landmarks
+                for lm_id, f, uv, level in rows:
+                    if lm_id in db:
+                        win.add_observation(lm_id, f, uv, level)
+            if k == 1:
+                win.set_scale_fix(scene.frame_ids[0], fid, float(np.linalg.norm(
+                    scene.poses[1][:3, 3] - scene.poses[0][:3, 3])))
+            t2 = time.perf_counter()
+            report = win.optimize(snapshot_iteration=3)
+            report.snapshot.negative_entropy(fid)
+            t3 = time.perf_counter()
+            for _ in range(3):
+                win.num_connected(fid)
+            win.remove_outliers()
+            t4 = time.perf_counter()
+            sizes.append((len(win.frame_ids), len(win.landmarks),
+                          win.landmarks.num_observations))
+            win.marginalize(win.select_frames_to_marginalize())
+            t5 = time.perf_counter()
+            t.update(add_frame_landmarks=t1 - t0, add_observations=t2 - t1,
+                     optimize=t3 - t2, connected_outliers=t4 - t3, marginalize=t5 - t4,
+                     total=t5 - t0, iterations=report.iterations)
+            frames.append(t)
+        return frames[warmup:], sizes[warmup:]
+
+    run()  # warm-up
+    frames, sizes = run()
+    sizes_arr = np.array(sizes)
+    mode = "one add_observations() batch" if batch else "add_observation() per observation"
+    print(f"per frame ({len(frames)} steady-state frames, {mode}): window "
+          f"{sizes_arr[:, 0].mean():.1f} poses, {sizes_arr[:, 1].mean():.0f} landmarks, "
+          f"{sizes_arr[:, 2].mean():.0f} observations on average")
+    total = 1e3 * np.array([f["total"] for f in frames])
+    iters = np.mean([f["iterations"] for f in frames])
+    print(f"  backend per frame: {np.median(total):.2f} ms median (min {total.min():.2f}, "
+          f"max {total.max():.2f}), {iters:.1f} GN iterations per optimize()")
+    print("  breakdown (median ms): " + ", ".join(
+        f"{k} {1e3 * np.median([f[k] for f in frames]):.2f}" for k in frames[0]
+        if k not in ("total", "iterations")))
 
 
 def accuracy(scene, length: float) -> None:

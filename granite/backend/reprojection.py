@@ -235,19 +235,28 @@ def robust_cost(uv: np.ndarray, valid: np.ndarray, obs_uv: np.ndarray, obs_level
 
 class Workspace:
     """Preallocated per-observation buffers, reused across iterations of one problem (large
-    temporary arrays would otherwise be page-faulted in on every iteration)."""
+    temporary arrays would otherwise be page-faulted in on every iteration). ``view(n)`` gives
+    a workspace for ``n <= capacity`` observations on the same memory (the window keeps one
+    workspace for all its problems, so that the pages stay mapped across calls)."""
+
+    _FIELDS = (("p", (3,)), ("p_lin", (3,)), ("J_h3", (3, 6)), ("J_t3", (3, 6)),
+               ("J_l3", (3, 3)), ("r", (2,)), ("w", ()), ("J_h", (2, 6)), ("J_t", (2, 6)),
+               ("J_l", (2, 3)))
 
     def __init__(self, n: int):
-        self.p = np.empty((n, 3))
-        self.p_lin = np.empty((n, 3))
-        self.J_h3 = np.empty((n, 3, 6))
-        self.J_t3 = np.empty((n, 3, 6))
-        self.J_l3 = np.empty((n, 3, 3))
-        self.r = np.empty((n, 2))
-        self.w = np.empty(n)
-        self.J_h = np.empty((n, 2, 6))
-        self.J_t = np.empty((n, 2, 6))
-        self.J_l = np.empty((n, 2, 3))
+        self.capacity = int(n)
+        for name, shape in self._FIELDS:
+            setattr(self, name, np.empty((self.capacity,) + shape))
+
+    def view(self, n: int) -> Workspace:
+        """A workspace of ``n`` observations sharing this one's memory (C-contiguous)."""
+        if n > self.capacity:
+            raise ValueError(f"workspace of capacity {self.capacity} cannot hold {n}")
+        ws = object.__new__(Workspace)
+        ws.capacity = int(n)
+        for name, _ in self._FIELDS:
+            setattr(ws, name, getattr(self, name)[:n])
+        return ws
 
 
 class LinearizedObservations:

@@ -85,14 +85,16 @@ class _Problem:
     """Packed arrays of one optimisation: pose order, poses, landmark states."""
 
     def __init__(self, frame_ids: list[int], poses: np.ndarray, poses_lin: np.ndarray,
-                 packed: PackedObservations):
+                 packed: PackedObservations, workspace: Workspace | None = None):
         self.frame_ids = frame_ids
         self.index = {f: i for i, f in enumerate(frame_ids)}
         self.poses = poses
         self.poses_lin = poses_lin
         self.packed = packed
         self.in_prior = np.zeros(len(frame_ids), dtype=bool)
-        self.workspace = Workspace(packed.num_observations)
+        self.workspace = workspace if workspace is not None else \
+            Workspace(packed.num_observations)
+        self.pair_keys: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def sync_lin(self) -> None:
         """Pose Jacobians of states not in the prior are evaluated at the current poses."""
@@ -107,6 +109,7 @@ class SlidingWindow:
     def __init__(self, camera, config: BackendConfig | None = None):
         self.camera = camera
         self.config = config if config is not None else BackendConfig()
+        self._shared_workspace: Workspace | None = None
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -177,15 +180,18 @@ class SlidingWindow:
         pyramid level the feature was created on (weight ``2**-level``)."""
         if frame_id not in self._frames:
             raise KeyError(f"observation in frame {frame_id}, which is not in the window")
-        self.landmarks.add_observation(int(landmark_id), int(frame_id), uv, int(level))
+        self.landmarks.add_observation(int(landmark_id), frame_id, uv, level)
 
     def add_observations(self, frame_id: int, landmark_ids: Sequence[int], uvs: np.ndarray,
-                         levels: Sequence[int] | None = None) -> None:
-        """Several observations made in one frame."""
-        uvs = np.asarray(uvs, dtype=np.float64).reshape(-1, 2)
-        levels = [0] * len(uvs) if levels is None else levels
-        for lm_id, uv, lvl in zip(landmark_ids, uvs, levels, strict=True):
-            self.add_observation(lm_id, frame_id, uv, lvl)
+                         levels: Sequence[int] | None = None, skip_unknown: bool = False) -> int:
+        """Several observations made in one frame, in one batch: ``landmark_ids`` (n,),
+        ``uvs`` (n, 2), ``levels`` (n,) (default 0). With ``skip_unknown=True`` ids that are
+        not landmarks are ignored (e.g. pass all tracks of a frame), otherwise they raise
+        ``KeyError``; nothing is added when the batch is invalid. Returns the number added."""
+        if frame_id not in self._frames:
+            raise KeyError(f"observation in frame {frame_id}, which is not in the window")
+        return self.landmarks.add_observations(frame_id, landmark_ids, uvs, levels,
+                                               skip_unknown=skip_unknown)
 
     def remove_landmark(self, landmark_id: int) -> None:
         self.landmarks.remove_landmark(landmark_id)
@@ -217,13 +223,7 @@ class SlidingWindow:
 
     def num_connected(self, frame_id: int) -> tuple[int, int]:
         """``(finite, infinite)``: landmarks observed in a frame with ``d > 0`` and ``d = 0``."""
-        finite = infinite = 0
-        for lm_id in self.landmarks.observed_in(frame_id):
-            if self.landmarks.landmark(lm_id).inv_dist > 0.0:
-                finite += 1
-            else:
-                infinite += 1
-        return finite, infinite
+        return self.landmarks.num_connected(frame_id)
 
     # --------------------------------------------------------------- packing
     def _problem(self, landmark_ids: Iterable[int] | None = None,
@@ -236,30 +236,42 @@ class SlidingWindow:
         for f, T in self.prior.lin_poses.items():
             poses_lin[index[f]] = T
         packed = self.landmarks.pack(index, landmark_ids, target_filter)
-        problem = _Problem(frame_ids, poses, poses_lin, packed)
+        problem = _Problem(frame_ids, poses, poses_lin, packed,
+                           self._workspace(packed.num_observations))
         for f in self.prior.lin_poses:
             problem.in_prior[index[f]] = True
         return problem
 
+    def _workspace(self, n: int) -> Workspace:
+        """Linearisation buffers for ``n`` observations on the window's shared workspace
+        (grown as needed). All problems of the window share this memory: the results of a
+        linearisation are valid until the next one (the window never keeps two)."""
+        ws = getattr(self, "_shared_workspace", None)
+        if ws is None or ws.capacity < n:
+            ws = Workspace(max(n, 1024, int(1.25 * (ws.capacity if ws is not None else 0))))
+            self._shared_workspace = ws
+        return ws.view(n)
+
     def _no_motion_pairs(self, problem: _Problem) -> list[tuple[int, int]]:
         """Pose-index pairs (h, t), h != t, connected by observations whose landmarks all have
-        ``d == 0`` (paper Sec. IV-B)."""
+        ``d == 0`` (paper Sec. IV-B), in ascending order of ``h * K + t`` (h < t)."""
         pk = problem.packed
         if (pk.num_observations == 0 or self.config.no_motion_weight <= 0.0
                 or not np.any(pk.lm_d == 0.0)):
             return []
-        host = pk.lm_host[pk.obs_lm]
-        tgt = pk.obs_tgt
-        mask = host != tgt
         k = len(problem.frame_ids)
-        a = np.minimum(host[mask], tgt[mask])
-        c = np.maximum(host[mask], tgt[mask])
-        keys = a * k + c
-        finite = (pk.lm_d[pk.obs_lm][mask] > 0.0).astype(np.int64)
-        uniq, inv = np.unique(keys, return_inverse=True)
-        any_finite = np.zeros(len(uniq), dtype=np.int64)
-        np.maximum.at(any_finite, inv, finite)
-        return [(int(u // k), int(u % k)) for u, f in zip(uniq, any_finite) if f == 0]
+        if problem.pair_keys is None:  # observation structure: fixed for the problem
+            host = pk.lm_host[pk.obs_lm]
+            tgt = pk.obs_tgt
+            sel = np.flatnonzero(host != tgt)
+            h, t = host[sel], tgt[sel]
+            keys = np.minimum(h, t) * k + np.maximum(h, t)
+            problem.pair_keys = (keys, pk.obs_lm[sel],
+                                 np.bincount(keys, minlength=k * k) > 0)
+        keys, obs_lm, linked = problem.pair_keys
+        finite = pk.lm_d[obs_lm] > 0.0
+        no_motion = linked & ~(np.bincount(keys[finite], minlength=k * k) > 0)
+        return [(int(u // k), int(u % k)) for u in np.flatnonzero(no_motion).tolist()]
 
     def _prior_terms(self, problem: _Problem, pairs: list[tuple[int, int]],
                      include: set[int] | None = None):
