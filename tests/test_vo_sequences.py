@@ -34,6 +34,17 @@ def test_smooth_flights_are_tracked_completely_and_accurately(name):
     assert initialised < 20  # within one second of flight
 
 
+@pytest.mark.parametrize("name", ["aggressive", "framedrop"])
+def test_fast_turns_and_frame_drops_are_tracked_without_restart(name):
+    """Sharp low-altitude turns and bursts of
+    missing frames: motion-guided tracking keeps the tracks, so no restart is needed."""
+    _, ev = _run(name)
+    assert ev.restarts == 0
+    assert ev.tracking_percentage == pytest.approx(100.0)
+    assert ev.rpe.rmse < 0.25
+    assert ev.ate.rmse / ev.path_length < 0.02
+
+
 def _angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
 

@@ -9,10 +9,14 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 
-from granite.errors import GraniteError
+# The VO's linear algebra works on small matrices, where BLAS threads only compete for cores.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from granite.errors import GraniteError  # noqa: E402
 
 #: Subcommand modules, in the order ``--help`` lists them.
 SUBCOMMANDS: tuple[str, ...] = ("demo", "run", "eval", "view", "track")

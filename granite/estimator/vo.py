@@ -28,6 +28,7 @@ from granite.estimator.keyframes import EntropyKeyframeSelector
 from granite.estimator.triangulation import triangulate_bearings
 from granite.geometry import se3_exp, se3_inverse, se3_log
 from granite.optical_flow import FrameToFrameOpticalFlow, OpticalFlowResult
+from granite.optical_flow.prediction import predict_positions
 
 
 @dataclass
@@ -120,6 +121,32 @@ class MonocularVO:
         ratio = min((timestamp - self._last_time) / dt, 5.0)
         return self._last_pose @ se3_exp(ratio * se3_log(T_prev_last))
 
+    def _predicted_track_positions(self, timestamp: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """Where the frontend's current tracks should appear at ``timestamp`` under the
+        constant-velocity pose: tracks of landmarks with d > 0 by their depth, the others by
+        the infinite homography. None when there is no motion estimate yet."""
+        if not self.config.estimator.motion_guided_tracking or self._motion is None:
+            return None
+        ids, uv = self.flow.current_tracks()
+        if not len(ids):
+            return None
+        T_w_old = self._last_pose
+        T_old_w = se3_inverse(T_w_old)
+        T_new_old = se3_inverse(self._predict_pose(timestamp)) @ T_w_old
+        db, win = self.window.landmarks, self.window
+        inv = db.inverse_distances(ids)
+        depths = np.full(len(ids), np.nan)
+        T_old_h: dict[int, np.ndarray] = {}
+        for k in np.flatnonzero(inv > 0.0):
+            lm = db.landmark(int(ids[k]))
+            host = lm.host_frame_id
+            if host not in T_old_h:
+                T_old_h[host] = T_old_w @ win.pose(host)
+            T = T_old_h[host]
+            depths[k] = T[2, :3] @ lm.point_in_host() + T[2, 3]
+        uv_new, valid = predict_positions(uv, self.camera, T_new_old, depths)
+        return ids[valid], uv_new[valid]
+
     def _connected(self, frame_id: int) -> tuple[int, int]:
         return self.window.num_connected(frame_id)
 
@@ -181,7 +208,7 @@ class MonocularVO:
             T_w_h = self.window.pose(lm.host_frame_id)
             if np.linalg.norm(T_w_c[:3, 3] - T_w_h[:3, 3]) < min_baseline:
                 continue
-            uv = db.observations(lm_id)[frame_id].uv
+            uv = db.observation(lm_id, frame_id).uv
             lm.inv_dist = min(
                 self._triangulate_inverse_distance(T_w_h, lm.bearing, frame_id, uv),
                 self.config.backend.max_inv_dist,
@@ -262,7 +289,7 @@ class MonocularVO:
             if kf != frame_id:  # the current frame observes the new landmarks too
                 db, cur = win.landmarks, self._tracks[frame_id]
                 for tid in db.hosted_by(kf):
-                    if frame_id not in db.observations(tid) and tid in cur.positions:
+                    if not db.has_observation(tid, frame_id) and tid in cur.positions:
                         win.add_observation(tid, frame_id, cur.positions[tid], cur.levels[tid])
             self.keyframe_log.append((kf, self.submap))
             self.selector.reset()
@@ -282,7 +309,7 @@ class MonocularVO:
             diag = FrameDiagnostics(timestamp, frame_id, self.submap, "skipped")
             return FrameOutput(self._last_pose.copy(), diag, None, np.zeros(0), tuple(self.window.keyframe_ids))
 
-        tracks = self.flow.process(timestamp, image)
+        tracks = self.flow.process(timestamp, image, predicted=self._predicted_track_positions(timestamp))
         if tracks.rejected is not None:  # blank / wrong size: the frontend kept its last frame
             diag = FrameDiagnostics(timestamp, frame_id, self.submap, "skipped",
                                     processing_ms=(time.perf_counter() - start) * 1e3)
@@ -301,10 +328,7 @@ class MonocularVO:
             self.keyframe_log.append((frame_id, self.submap))
             keyframe_taken = True
         else:
-            db = win.landmarks
-            for tid, uv in self._tracks[frame_id].positions.items():
-                if tid in db:
-                    win.add_observation(tid, frame_id, uv, self._tracks[frame_id].levels[tid])
+            win.add_observations(frame_id, tracks.ids, tracks.positions, tracks.levels, skip_unknown=True)
 
         finite, _ = self._connected(frame_id)
         if not first_of_submap and finite < est.min_finite_observations:
@@ -337,7 +361,7 @@ class MonocularVO:
             self._previous_frame = frame_id
 
         db = win.landmarks
-        inv = np.array([db.landmark(int(t)).inv_dist if int(t) in db else np.nan for t in tracks.ids])
+        inv = db.inverse_distances(tracks.ids)
         diag = FrameDiagnostics(
             timestamp, frame_id, submap, state, len(tracks), finite, infinite, keyframe_taken,
             negative_entropy if negative_entropy is not None and np.isfinite(negative_entropy) else None,

@@ -46,6 +46,13 @@ class OpticalFlowConfig:
             pixels), the points that failed are tracked again starting from that
             displacement instead of zero motion. Helps points whose coarse levels are
             unusable (near the border, small images) follow large motion (frame drops).
+        guess_min_zncc: not in the reference; only used for tracks given a predicted position
+            (``process(..., predicted=...)``). A track found from its prediction is accepted
+            only if, besides the forward-backward check, the zero-mean normalised
+            cross-correlation of the patch with its template on the creation level is at
+            least this value; otherwise it is tracked as without a prediction. The backward
+            pass of a guided track starts near the track's start, so a false match found from
+            a wrong prediction can pass the forward-backward check; this rejects them.
     """
 
     levels: int = 6
@@ -60,6 +67,7 @@ class OpticalFlowConfig:
     margin: float = 2.0
     presmooth_sigma: float = 0.0
     retry_min_flow: float = 2.0
+    guess_min_zncc: float = 0.9
 
     def __post_init__(self) -> None:
         _check_type(self)
@@ -78,6 +86,7 @@ class OpticalFlowConfig:
             (self.margin >= 2.0, "margin must be >= 2 (gradients read two pixels around a sample)"),
             (0.0 <= self.presmooth_sigma <= 5.0, "presmooth_sigma must be in [0, 5] (0 disables)"),
             (self.retry_min_flow >= 0.0, "retry_min_flow must be >= 0 (0 disables)"),
+            (-1.0 <= self.guess_min_zncc <= 1.0, "guess_min_zncc must be in [-1, 1] (-1 disables)"),
         ]
         for ok, message in checks:
             if not ok:

@@ -9,6 +9,11 @@ A frame that cannot be used (``None``, not a 2-D uint8/uint16 array, a size diff
 the first frame's, or a constant image) gives a :class:`FrameRejectedWarning` and an empty
 result; the tracker keeps the last accepted frame, so the next good frame is tracked from it
 (as across a frame drop).
+
+Motion-guided tracking: the caller (the VO) may pass predicted positions of existing tracks in
+the new image (``process(..., predicted=(ids, positions))``); those tracks are first tracked
+coarse to fine from the predicted displacement, and fall back to the unguided passes when that
+fails the forward-backward check. Without a prediction the behaviour is the reference one.
 """
 
 from __future__ import annotations
@@ -85,6 +90,11 @@ class FrameToFrameOpticalFlow:
         """The id the next new track gets (= number of ids issued so far)."""
         return self._next_id
 
+    def current_tracks(self) -> tuple[np.ndarray, np.ndarray]:
+        """Ids (N,) and level-0 positions (N, 2) of the tracks in the last accepted frame
+        (copies); the ids a ``predicted`` argument of :meth:`process` refers to."""
+        return self._ids.copy(), self._points.copy()
+
     def reset(self) -> None:
         """Forget all tracks and the reference frame (ids keep increasing)."""
         self._pyramid = None
@@ -95,8 +105,24 @@ class FrameToFrameOpticalFlow:
         self._cache = new_template_cache(0, self.config.levels, len(self._pattern))
         self._rows = np.zeros(0, dtype=np.int64)
 
-    def process(self, timestamp: float, image: np.ndarray | None) -> OpticalFlowResult:
-        """Track into ``image`` (2-D uint8 or uint16) and detect new points."""
+    def process(
+        self,
+        timestamp: float,
+        image: np.ndarray | None,
+        predicted: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> OpticalFlowResult:
+        """Track into ``image`` (2-D uint8 or uint16) and detect new points.
+
+        ``predicted`` = ``(track_ids (K,), positions (K, 2))``: optional predicted positions
+        (level-0 pixels in ``image``) of some or all current tracks, i.e. the ids of the last
+        accepted frame's result. Ids not currently tracked and rows with non-finite positions
+        are ignored. A track with a prediction is first tracked from the predicted
+        displacement (forward from ``p + g``, back from the found ``p'`` starting at
+        ``p' - g``, same forward-backward check, plus a patch correlation of at least
+        ``config.guess_min_zncc``); if that fails it is tracked as without a prediction
+        (zero motion, then the median-flow retry). ``None`` (or K = 0) gives the unguided
+        result, bit for bit.
+        """
         t0 = time.perf_counter()
         reason = self._check(image)
         if reason is not None:
@@ -120,6 +146,7 @@ class FrameToFrameOpticalFlow:
                 pyramid.data, pyramid.offsets, pyramid.widths, pyramid.heights,
                 points, levels, self._rows, *self._cache, *cache,
                 self._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow,
+                guess=self._guess(predicted), min_zncc_guess=cfg.guess_min_zncc,
             )
             ids, points, levels = ids[status], new_points[status], levels[status]
             angles = angles[status] + dtheta[status]
@@ -159,6 +186,31 @@ class FrameToFrameOpticalFlow:
             new=new,
             timing=timing,
         )
+
+    def _guess(self, predicted) -> np.ndarray | None:
+        """Per-track predicted displacement (N, 2) (NaN rows: none), or None without any."""
+        if predicted is None:
+            return None
+        try:
+            pred_ids, pred_pos = predicted
+        except (TypeError, ValueError):
+            raise ValueError("predicted must be a pair (track_ids (K,), positions (K, 2))") from None
+        pred_ids = np.asarray(pred_ids).reshape(-1).astype(np.int64)
+        pred_pos = np.asarray(pred_pos, dtype=np.float64)
+        if pred_pos.shape != (len(pred_ids), 2):
+            raise ValueError(
+                f"predicted positions must have shape ({len(pred_ids)}, 2), got {pred_pos.shape}"
+            )
+        if not len(pred_ids) or not len(self._ids):
+            return None
+        rows = np.searchsorted(self._ids, pred_ids)  # self._ids is ascending
+        rows_c = np.minimum(rows, len(self._ids) - 1)
+        use = (self._ids[rows_c] == pred_ids) & np.isfinite(pred_pos).all(axis=1)
+        if not use.any():
+            return None
+        guess = np.full((len(self._ids), 2), np.nan)
+        guess[rows_c[use]] = pred_pos[use] - self._points[rows_c[use]]
+        return guess
 
     def _take_cache(self, n: int) -> tuple[np.ndarray, ...]:
         """A template cache with n rows marked empty. Two storages alternate (the current

@@ -13,6 +13,8 @@ everything the inverse-compositional Gauss-Newton step needs.
 
 from __future__ import annotations
 
+import math
+
 from numba import njit
 
 _EPS = 1e-9
@@ -244,3 +246,44 @@ def patch_increment(buf, off, w, h, tx, ty, cos_t, sin_t, pattern, radius, margi
     d1 = -(aux[1, 0] * r0 + aux[1, 1] * r1 + aux[1, 2] * r2)
     d2 = -(aux[2, 0] * r0 + aux[2, 1] * r1 + aux[2, 2] * r2)
     return True, d0, d1, d2
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def patch_zncc(buf, off, w, h, tx, ty, theta, pattern, margin, data, valid) -> float:
+    """Zero-mean normalised cross-correlation of the patch warped to (tx, ty, theta) (level
+    pixels) with its template (``data``, ``valid`` from :func:`make_template`), over the
+    samples inside the image and valid in the template; -1 when fewer than half of the
+    pattern are usable or either side has no variance."""
+    n = pattern.shape[0]
+    c = math.cos(theta)
+    s = math.sin(theta)
+    m = 0
+    st = 0.0
+    sv = 0.0
+    stt = 0.0
+    svv = 0.0
+    stv = 0.0
+    for i in range(n):
+        if not valid[i]:
+            continue
+        qx = pattern[i, 0]
+        qy = pattern[i, 1]
+        x = c * qx - s * qy + tx
+        y = s * qx + c * qy + ty
+        if not in_bounds(x, y, w, h, margin):
+            continue
+        v = interp(buf, off, w, x, y)
+        t = data[i]
+        m += 1
+        st += t
+        sv += v
+        stt += t * t
+        svv += v * v
+        stv += t * v
+    if 2 * m <= n:
+        return -1.0
+    vt = stt - st * st / m
+    vv = svv - sv * sv / m
+    if not (vt > 1e-12 and vv > 1e-12):
+        return -1.0
+    return (stv - st * sv / m) / math.sqrt(vt * vv)

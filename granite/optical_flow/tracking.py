@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from granite.optical_flow.patch import FASTMATH as _FASTMATH
-from granite.optical_flow.patch import in_bounds, make_template, patch_increment
+from granite.optical_flow.patch import in_bounds, make_template, patch_increment, patch_zncc
 
 #: Gauss-Newton stops early once a step is below 0.01 pixels on the creation level of a patch
 #: and below 0.1 pixels on coarser levels, which only need to start the next level well
@@ -122,12 +122,23 @@ def new_template_cache(num_points: int, num_levels: int, num_samples: int):
     )
 
 
-@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+#: Passes of :func:`track_points` (``order`` argument): each pass retries the points that are
+#: not tracked yet, from its own initial displacement.
+PASS_ZERO = 0  # zero motion (the reference)
+PASS_GUESS = 1  # the caller's per-point predicted displacement
+PASS_MEDIAN = 2  # the median displacement of the points tracked so far (retry_min_flow)
+
+_NO_GUESS = np.zeros((0, 2))
+_ORDER_UNGUIDED = np.array([PASS_ZERO, PASS_MEDIAN], dtype=np.int64)
+_ORDER_GUIDED = np.array([PASS_GUESS, PASS_ZERO, PASS_MEDIAN], dtype=np.int64)
+
+
 def track_points(
     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
     st_b, data_b, valid_b, jac_b, aux_b,
     pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
+    guess=None, order=None, min_zncc_guess=0.9,
 ):
     """Track all points of image A into image B with a forward-backward check.
 
@@ -138,20 +149,62 @@ def track_points(
             backward pass fills row k with point k's templates at its new position, so the
             next frame can reuse them as its ``*_a`` cache.
         retry_min_flow: if > 0 and the median displacement ``f`` of the points tracked on
-            the first pass is at least this long (level-0 pixels), the failed points are
+            the earlier passes is at least this long (level-0 pixels), the failed points are
             tracked again from the guess ``p + f`` (and back from ``p' - f``).
+        guess: optional (N, 2) predicted displacement of each point (level-0 pixels; a row
+            with a NaN: no prediction). The guided pass tracks ``p -> p + g`` forward
+            (coarse to fine, starting from ``g`` instead of zero motion) and back from the
+            found ``p'`` starting at ``p' - g``, under the same forward-backward check.
+        min_zncc_guess: a match of the guided pass is accepted only if the zero-mean
+            normalised cross-correlation of the patch with its template (creation level) is
+            at least this (<= -1 disables). The guided backward pass starts near ``p``, so
+            it cannot expose a false match that a wrong prediction led the forward pass to.
+        order: (M,) int64 sequence of passes (:data:`PASS_ZERO`, :data:`PASS_GUESS`,
+            :data:`PASS_MEDIAN`); each pass retries the points still not tracked. Default:
+            guess, zero, median with a guess; zero, median (the reference plus the retry)
+            without.
     Returns:
         (new_points (N, 2), theta (N,), status (N,) bool): status is True when the point was
         tracked A -> B and back B -> A to within ``fb_threshold_sq`` (squared distance in
-        pixels of its creation level) of its start. The first pass starts both directions
-        from zero motion, as the reference does.
+        pixels of its creation level) of its start. Without a guess the first pass starts
+        both directions from zero motion, as the reference does. ``new_points`` of a point
+        that failed every pass is the forward result of its first attempt.
     """
+    if guess is None:
+        guess = _NO_GUESS
+    else:
+        guess = np.ascontiguousarray(guess, dtype=np.float64)
+        if guess.shape != (points.shape[0], 2):
+            raise ValueError(f"guess must have shape ({points.shape[0]}, 2), got {guess.shape}")
+    if order is None:
+        order = _ORDER_UNGUIDED if guess.shape[0] == 0 else _ORDER_GUIDED
+    return _track_points(
+        buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+        points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
+        st_b, data_b, valid_b, jac_b, aux_b,
+        pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
+        guess, np.asarray(order, dtype=np.int64), min_zncc_guess,
+    )[:3]
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def _track_points(
+    buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+    points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
+    st_b, data_b, valid_b, jac_b, aux_b,
+    pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
+):
+    """Kernel of :func:`track_points` (``guess`` (N, 2) or (0, 2) for none). Also returns
+    the ZNCC of each point's last guided forward match (-2: none)."""
     n = points.shape[0]
     n_levels = offs_a.shape[0]
     p = pattern.shape[0]
+    has_guess = guess.shape[0] == n and n > 0
     out = np.empty((n, 2))
     theta = np.zeros(n)
     status = np.zeros(n, dtype=np.bool_)
+    tried = np.zeros(n, dtype=np.bool_)
+    score = np.full(n, -2.0)
     st_s = np.empty(n_levels, dtype=np.int8)
     data_s = np.empty((n_levels, p), dtype=np.float32)
     valid_s = np.empty((n_levels, p), dtype=np.bool_)
@@ -161,16 +214,18 @@ def track_points(
     for i in range(p):
         radius = max(radius, math.sqrt(pattern[i, 0] ** 2 + pattern[i, 1] ** 2))
     radius += 1e-6
-    flow_x = 0.0
-    flow_y = 0.0
-    for attempt in range(2):
-        if attempt == 1:
-            # Median displacement of the first pass as the guess for the failed points.
+    for mode in order:
+        flow_x = 0.0
+        flow_y = 0.0
+        if mode == PASS_GUESS and not has_guess:
+            continue
+        if mode == PASS_MEDIAN:
+            # Median displacement of the earlier passes as the guess for the failed points.
             n_ok = 0
             for k in range(n):
                 n_ok += status[k]
             if retry_min_flow <= 0.0 or n_ok < 5 or n_ok == n:
-                break
+                continue
             dx = np.empty(n_ok)
             dy = np.empty(n_ok)
             j = 0
@@ -182,10 +237,15 @@ def track_points(
             flow_x = np.median(dx)
             flow_y = np.median(dy)
             if flow_x * flow_x + flow_y * flow_y < retry_min_flow * retry_min_flow:
-                break
+                continue
         for k in range(n):
             if status[k]:
                 continue
+            if mode == PASS_GUESS:
+                flow_x = guess[k, 0]
+                flow_y = guess[k, 1]
+                if not (math.isfinite(flow_x) and math.isfinite(flow_y)):
+                    continue
             x0 = points[k, 0]
             y0 = points[k, 1]
             lvl = levels[k]
@@ -203,10 +263,28 @@ def track_points(
                     x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, margin, iterations,
                     st_s, data_s, valid_s, jac_s, aux_s,
                 )
-            if attempt == 0 or ok:
+            if ok and mode == PASS_GUESS and min_zncc_guess > -1.0:
+                # The backward pass below starts near the start point, so a false match
+                # found from a wrong prediction can pass the forward-backward check; require
+                # the patch to look like its template.
+                scale = float(1 << lvl)
+                if row >= 0:
+                    zn = patch_zncc(
+                        buf_b, offs_b[lvl], ws_b[lvl], hs_b[lvl], x1 / scale, y1 / scale, t1,
+                        pattern, margin, data_a[row, lvl], valid_a[row, lvl],
+                    )
+                else:
+                    zn = patch_zncc(
+                        buf_b, offs_b[lvl], ws_b[lvl], hs_b[lvl], x1 / scale, y1 / scale, t1,
+                        pattern, margin, data_s[lvl], valid_s[lvl],
+                    )
+                score[k] = zn
+                ok = zn >= min_zncc_guess
+            if ok or not tried[k]:
                 out[k, 0] = x1
                 out[k, 1] = y1
                 theta[k] = t1
+            tried[k] = True
             if not ok:
                 continue
             st_b[k, :] = -1  # templates at a new position
@@ -220,4 +298,4 @@ def track_points(
             scale = float(1 << lvl)
             dist_sq = ((xb - x0) ** 2 + (yb - y0) ** 2) / (scale * scale)
             status[k] = dist_sq < fb_threshold_sq
-    return out, theta, status
+    return out, theta, status, score
