@@ -3,6 +3,7 @@
     granite-sim render SCENARIO --out DIR [--width W --height H --samples N --frames A:B
                                            --grayscale --depth-format npy|inv16 --quiet]
     granite-sim list
+    granite-sim view DATASET [--rerun FILE.rrd | --spawn] [--no-depth]
 
 SCENARIO is a bundled scenario name (``granite-sim list``) or a path to a ``.toml`` file.
 Runs are resumable: running the same command again skips finished frames. Bad input (unknown
@@ -49,6 +50,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="float32 .npy (exact) or inv16: 16-bit PNG of inverse depth (compact)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     sub.add_parser("list", help="list the bundled scenarios")
+    v = sub.add_parser(
+        "view", help="make a rerun recording of a rendered dataset",
+        description="Log a rendered dataset to rerun: images, depth maps, the ground-truth "
+        "trajectory and the camera frustum per frame (entity layout: README).")
+    v.add_argument("dataset", help="dataset folder (output of granite-sim render)")
+    target = v.add_mutually_exclusive_group()
+    target.add_argument("--rerun", metavar="FILE.rrd", help="recording to write "
+                        "(default: DATASET/dataset.rrd)")
+    target.add_argument("--spawn", action="store_true", help="stream to a new rerun viewer")
+    v.add_argument("--no-depth", action="store_true", help="leave the depth maps out")
+    v.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
 
@@ -89,12 +101,36 @@ def cmd_render(args: argparse.Namespace, argv: list[str]) -> int:
     return 0
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from tqdm import tqdm
+
+    from granite.io import open_dataset
+    from granite.visualization.dataset_view import log_dataset
+    from simulation.depth import depth_reader
+
+    dataset = open_dataset(args.dataset)
+    rrd = None if args.spawn else Path(args.rerun or Path(args.dataset) / "dataset.rrd")
+    depth_of = None if args.no_depth else depth_reader(dataset)
+    counts = log_dataset(
+        dataset, rrd, args.spawn, depth_of,
+        progress=lambda frames: tqdm(frames, total=len(dataset), unit="frame", desc=dataset.name,
+                                     disable=args.quiet, dynamic_ncols=True))
+    where = f"recording: {rrd}" if rrd else "streamed to the viewer"
+    print(f"{dataset.name}: {counts['frames']} frames, {counts['images']} images, "
+          f"{counts['poses']} ground-truth poses, {counts['depth_maps']} depth maps; {where}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     try:
         if args.command == "list":
             return cmd_list()
+        if args.command == "view":
+            return cmd_view(args)
         return cmd_render(args, argv)
     except GraniteError as error:
         print(f"granite-sim {args.command}: error: {error}", file=sys.stderr)

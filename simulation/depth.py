@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -67,3 +68,28 @@ def read_depth(path: str | Path) -> np.ndarray:
         depth[valid] = (INV16_SCALE / code[valid].astype(np.float64)).astype(np.float32)
         return depth
     raise InputError("unknown depth map format (expected .npy or .png)", p)
+
+
+def depth_reader(dataset) -> Callable[[int], np.ndarray | None] | None:
+    """``depth_of(frame_index)`` for a test-bench dataset (``mav0/depth0``), reading the depth
+    map with the frame's timestamp (None when that frame has none); None when the dataset has
+    no depth folder."""
+    listing = Path(dataset.root) / "mav0" / "depth0" / "data.csv"
+    if not listing.is_file() or dataset.timestamps_ns is None:
+        return None
+    files: dict[int, Path] = {}
+    for line_no, line in enumerate(listing.read_text().splitlines(), start=1):
+        if not line.strip() or line.startswith("#"):
+            continue
+        try:
+            stamp, name = (part.strip() for part in line.split(","))
+            files[int(stamp)] = listing.parent / "data" / name
+        except ValueError:
+            raise InputError("malformed row (expected 'timestamp_ns,filename')", listing, line_no) from None
+    stamps = dataset.timestamps_ns
+
+    def depth_of(index: int) -> np.ndarray | None:
+        path = files.get(int(stamps[index]))
+        return None if path is None else read_depth(path)
+
+    return depth_of

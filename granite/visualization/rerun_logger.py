@@ -8,11 +8,13 @@ Entity layout (world frame z up for the test-bench; all poses ``T_w_c``):
 ``world/estimate``              estimated trajectory (aligned to the ground truth), red
 ``world/camera``                current camera pose (transform + pinhole frustum)
 ``world/camera/image``          the camera image
+``world/camera/depth``          planar depth in metres (dataset recordings only)
 ``world/camera/image/tracks``   tracked points, coloured by inverse distance
                                 (:mod:`granite.visualization.colors`), radius = patch size
-``world/keyframes``             keyframe camera centres of the current window, blue
+``world/keyframes/<slot>``      keyframes of the current window as frustums (slot = rank
+                                in the window, oldest first; unused slots are cleared)
 ``world/landmarks``             landmarks of the window, same colours as the 2D points
-``plots/<name>``                time series (tracked points, landmarks, entropy, ...)
+``plots/<name>``                time series (tracked points, landmarks, entropy, relative scale error)
 ==============================  ==========================================================
 
 Timelines: ``frame`` (sequence, dataset frame index) and ``time`` (seconds since the first
@@ -35,7 +37,6 @@ PATCH_RADIUS_PX = 5.25
 
 GROUNDTRUTH_COLOR = (40, 200, 40)
 ESTIMATE_COLOR = (230, 40, 40)
-KEYFRAME_COLOR = (40, 80, 255)
 
 
 def default_blueprint() -> rrb.Blueprint:
@@ -64,6 +65,9 @@ class RerunLogger:
         elif spawn:
             self.rec.spawn(default_blueprint=default_blueprint())
         self._t0: float | None = None
+        self._K: np.ndarray | None = None
+        self._resolution: list[int] | None = None
+        self._keyframe_slots = 0
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
     # -- time ---------------------------------------------------------------------------
@@ -77,6 +81,7 @@ class RerunLogger:
     def log_camera_model(self, fx: float, fy: float, cx: float, cy: float, width: int, height: int):
         """Pinhole frustum of ``world/camera`` (intrinsics of the linear part for fisheyes)."""
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        self._K, self._resolution = K, [width, height]
         self.rec.log(
             "world/camera",
             rr.Pinhole(image_from_camera=K, resolution=[width, height], camera_xyz=rr.ViewCoordinates.RDF),
@@ -96,6 +101,25 @@ class RerunLogger:
     def log_camera_pose(self, T_w_c: np.ndarray) -> None:
         q = rotation_to_quat(T_w_c[:3, :3])
         self.rec.log("world/camera", rr.Transform3D(translation=T_w_c[:3, 3], quaternion=q))
+
+    def log_depth(self, depth: np.ndarray) -> None:
+        """Planar depth (H, W) in metres, 0 where there is no surface."""
+        self.rec.log("world/camera/depth", rr.DepthImage(depth, meter=1.0))
+
+    def log_keyframes(self, poses_w_c: list[np.ndarray], frustum_depth: float) -> None:
+        """The window's keyframes ``T_w_c`` as frustums ``frustum_depth`` deep (world units);
+        slots left over from a larger window are cleared."""
+        for slot, T in enumerate(poses_w_c):
+            entity = f"world/keyframes/{slot}"
+            q = rotation_to_quat(T[:3, :3])
+            self.rec.log(entity, rr.Transform3D(translation=T[:3, 3], quaternion=q))
+            if self._K is not None:
+                self.rec.log(entity, rr.Pinhole(image_from_camera=self._K, resolution=self._resolution,
+                                                camera_xyz=rr.ViewCoordinates.RDF,
+                                                image_plane_distance=frustum_depth))
+        for slot in range(len(poses_w_c), self._keyframe_slots):
+            self.rec.log(f"world/keyframes/{slot}", rr.Clear(recursive=True))
+        self._keyframe_slots = max(self._keyframe_slots, len(poses_w_c))
 
     def log_image(self, image: np.ndarray) -> None:
         self.rec.log("world/camera/image", rr.Image(image))

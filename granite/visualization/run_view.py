@@ -4,7 +4,9 @@ folder (``granite view``); both go through :class:`RunView`.
 Per frame the image, the tracks coloured by inverse distance and the time series are logged as
 they come. When the run ends, the estimate is Sim(3)-aligned to the ground truth per sub-map
 (the paper's Fig. 3) and the aligned camera, the window's keyframes and landmarks and the
-aligned trajectory are logged for every frame on the same timeline.
+aligned trajectory are logged for every frame on the same timeline, and, with ground truth,
+the running relative scale error (``plots/relative_scale_error``, over ``scale_delta`` seconds;
+:mod:`granite.evaluation.scale_drift`).
 """
 
 from __future__ import annotations
@@ -16,13 +18,12 @@ import numpy as np
 from granite.errors import GraniteError
 from granite.estimator.diagnostics import FrameDiagnostics
 from granite.estimator.records import FrameRecord
-from granite.evaluation import ate
+from granite.evaluation import ate, relative_scale_error
 from granite.trajectory import Trajectory
 from granite.visualization.colors import inverse_distance_colors
 from granite.visualization.rerun_logger import (
     ESTIMATE_COLOR,
     GROUNDTRUTH_COLOR,
-    KEYFRAME_COLOR,
     RerunLogger,
 )
 
@@ -44,13 +45,23 @@ def _apply(sim, points: np.ndarray) -> np.ndarray:
     return s * points @ R.T + t
 
 
+def _aligned_pose(sim, T_w_c: np.ndarray) -> np.ndarray:
+    """``T_w_c`` moved by the similarity ``sim`` (the camera frame itself is not scaled)."""
+    T = np.eye(4)
+    T[:3, :3] = sim[1] @ T_w_c[:3, :3]
+    T[:3, 3] = _apply(sim, T_w_c[:3, 3][None])[0]
+    return T
+
+
 class RunView:
     """Builds the recording of one run (entity layout: :mod:`granite.visualization.rerun_logger`)."""
 
     def __init__(self, name: str, calibration, ground_truth: Trajectory | None,
-                 rrd_path: str | Path | None = None, spawn: bool = False, d_max: float = 1.0):
+                 rrd_path: str | Path | None = None, spawn: bool = False, d_max: float = 1.0,
+                 scale_delta: float = 1.0):
         self.log = RerunLogger(name, rrd_path, spawn)
         self.d_max = d_max
+        self.scale_delta = scale_delta
         if calibration is not None:
             i = calibration.intrinsics
             self.log.log_camera_model(i["fx"], i["fy"], i["cx"], i["cy"], calibration.width, calibration.height)
@@ -86,22 +97,37 @@ class RunView:
                 positions[k] = _apply(sims[int(sub[k])], trajectory.poses[k, :3, 3][None])[0]
         self.log.log_trajectory("world/estimate", positions, ESTIMATE_COLOR)
         index_row = {r.index: row.get(float(r.timestamp)) for r in self._records}
+        scale_error = self._scale_errors(trajectory, sims)
+        finite = positions[np.all(np.isfinite(positions), axis=1)]
+        extent = float(np.ptp(finite, axis=0).max()) if len(finite) else 1.0
+        frustum_depth = max(0.02 * extent, 0.05)
         for record in self._records:
             k = index_row[record.index]
             if k is None or int(sub[k]) not in sims:
                 continue
             sim = sims[int(sub[k])]
-            s, R, t = sim
-            T = np.eye(4)
-            T[:3, :3] = R @ trajectory.poses[k, :3, :3]
-            T[:3, 3] = positions[k]
+            s = sim[0]
             self.log.set_frame(record.index, record.timestamp)
-            self.log.log_camera_pose(T)
+            self.log.log_camera_pose(_aligned_pose(sim, trajectory.poses[k]))
+            if float(record.timestamp) in scale_error:
+                self.log.log_scalar("relative_scale_error", scale_error[float(record.timestamp)])
             kf_rows = [index_row.get(f) for f in record.keyframe_ids]
-            kf = np.array([positions[r] for r in kf_rows if r is not None and int(sub[r]) == int(sub[k])])
-            if len(kf):
-                self.log.log_points3d("world/keyframes", kf, KEYFRAME_COLOR, radius=0.08)
+            self.log.log_keyframes(
+                [_aligned_pose(sim, trajectory.poses[r]) for r in kf_rows
+                 if r is not None and int(sub[r]) == int(sub[k])],
+                frustum_depth)
             if len(record.landmarks_w):
                 colors = inverse_distance_colors(record.landmarks_inverse_distance / s, self.d_max)
                 self.log.log_points3d("world/landmarks", _apply(sim, record.landmarks_w), colors, radius=0.04)
         self.log.close()
+
+    def _scale_errors(self, trajectory: Trajectory, sims: dict) -> dict[float, float]:
+        """Relative scale error per estimate timestamp (empty without ground truth)."""
+        if self.ground_truth is None or not sims:
+            return {}
+        try:
+            series = relative_scale_error(trajectory, self.ground_truth, self.scale_delta,
+                                          {k: v[0] for k, v in sims.items()})
+        except (GraniteError, ValueError):
+            return {}
+        return {float(t): float(e) for t, e in zip(series.timestamps, series.errors)}
