@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import rerun as rr
@@ -12,6 +13,7 @@ from granite.cli.main import main
 from granite.estimator.diagnostics import read_diagnostics
 from granite.io import open_dataset
 from granite.visualization.colors import INFINITY_COLOR, UNMAPPED_COLOR, inverse_distance_colors
+from granite.visualization.rerun_logger import frustum_wireframes
 from planar_scene import default_flight, write_planar_dataset
 
 N_PLANAR = 40
@@ -35,6 +37,12 @@ def run(request, tmp_path_factory):
     return out, n, len(open_dataset(dataset).ground_truth)
 
 
+def dataset_of(run_dir):
+    import json
+
+    return json.loads((run_dir / "summary.json").read_text())["dataset"]
+
+
 def _column(table, name):
     return table.column(name).to_pylist()
 
@@ -47,8 +55,13 @@ def test_recording_holds_images_points_trajectories_and_series(run, recording):
     frames = _column(table, "frame")
     assert sorted(frames) == list(range(N))
     diags = {d.frame_index: d for d in read_diagnostics(run_dir / "diagnostics.csv")}
-    images = table.column("/world/camera/image:ImageBuffer")
+    # Images are logged as the dataset's PNG bytes (no re-encoding): they decode to the frames.
+    images = table.column("/world/camera/image:Blob")
     assert len(images) - images.null_count == N
+    k = frames.index(N // 2)
+    blob = images[k].values[0].values.to_numpy(zero_copy_only=False).astype(np.uint8)
+    decoded = cv2.imdecode(blob, cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(decoded, open_dataset(dataset_of(run_dir)).frame(N // 2).image)
     tracked = _column(table, "/plots/tracked_points:Scalar")
     positions = _column(table, "/world/camera/image/tracks:Position2D")
     colors = _column(table, "/world/camera/image/tracks:Color")
@@ -77,13 +90,25 @@ def test_recording_holds_images_points_trajectories_and_series(run, recording):
     after_first_second = sum(t >= times[0] + 1.0 - 1e-6 for t in times)
     assert 0.8 * after_first_second <= len(scale_error) <= after_first_second
     assert np.all(np.abs(scale_error) < 0.5)
-    # Keyframe frustums: every frame shows the window's keyframes as posed pinholes.
-    kf_columns = [c for c in table.column_names if c.startswith("/world/keyframes/")
-                  and c.endswith(":PinholeProjection")]
-    assert kf_columns
-    shown = [sum(table.column(c)[i].as_py() is not None for c in kf_columns) for i in range(len(frames))]
-    assert max(shown) >= 2 and min(shown) >= 1
+    # Keyframe frustums: every frame shows the window's keyframes (one strip per keyframe).
+    strips = _column(table, "/world/keyframes:LineStrip3D")
+    shown = [len(v) for f, v in zip(frames, strips) if v is not None]
+    assert len(shown) == N and min(shown) >= 1 and max(shown) >= 2
 
+
+def test_frustum_wireframe_reaches_the_image_corners_at_the_given_depth():
+    K = np.array([[200.0, 0, 160], [0, 210.0, 120], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    strip = frustum_wireframes(T[None], K, (320, 240), 0.5)[0] - T[:3, 3]
+    apex = np.all(strip == 0, axis=1)
+    assert apex.sum() == 2
+    corners = strip[~apex]
+    np.testing.assert_allclose(corners[:, 2], 0.5)
+    pixels = corners @ K.T / corners[:, 2:]
+    assert {tuple(np.round(p[:2]).astype(int)) for p in pixels} == {(0, 0), (320, 0), (320, 240), (0, 240)}
+    edges = {frozenset((tuple(a), tuple(b))) for a, b in zip(strip[:-1], strip[1:])}
+    assert len(edges) == 8  # the four rectangle sides and the four edges to the apex
 
 def test_view_of_missing_run_is_a_clear_error(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nope")]) == 2

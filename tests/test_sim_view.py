@@ -26,7 +26,7 @@ def test_dataset_recording_holds_images_depth_and_ground_truth_poses(tmp_path):
     assert sorted(frames) == list(range(len(images)))
     col = lambda name: table.column(name).to_pylist()  # noqa: E731
     present = lambda name: len(table) - table.column(name).null_count  # noqa: E731
-    assert present("/world/camera/image:ImageBuffer") == len(images)
+    assert present("/world/camera/image:Blob") == len(images)  # the PNG files, as they are
     assert present("/world/camera/depth:ImageBuffer") == len(images)
     # The camera pose of frame k is the ground truth at its timestamp (independent reading of
     # the TUM file; rendered frames lie on ground-truth samples).

@@ -82,7 +82,7 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
         record = FrameRecord.from_output(frame.index, frame.timestamp, output)
         records.append(record)
         if view is not None:
-            view.log_frame(record, frame.image, output.diagnostics)
+            view.log_frame(record, frame.image, output.diagnostics, frame.path)
 
     result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames)
     write_run(out, result, config, {"dataset": str(dataset.root), "format": dataset.format})

@@ -47,7 +47,7 @@ def run(args) -> int:
     view = RunView(f"granite-view-{dataset.name}", dataset.calibration, dataset.ground_truth, rrd, args.spawn)
     for record, diag in zip(records, diagnostics):
         frame = dataset.frame(record.index)
-        view.log_frame(record, frame.image, diag)
+        view.log_frame(record, frame.image, diag, frame.path)
     view.finish(trajectory)
     print(f"recording: {rrd}" if rrd else "streamed to the viewer")
     return 0

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from granite.backend import SlidingWindow
-from granite.backend.landmarks import stereo_from_bearing
+from granite.backend.landmarks import bearings_from_stereo
 from granite.estimator.config import VoConfig
 from granite.estimator.diagnostics import FrameDiagnostics
 from granite.estimator.initialization import initialize_two_view
@@ -92,23 +92,31 @@ class MonocularVO:
         self._last_pose = np.eye(4)
         self._motion = None
 
+    def _landmark_points(self, landmark_ids, T_x_w: np.ndarray | None = None) -> np.ndarray:
+        """Points (n, 3) of the given landmarks (all with d > 0) in frame x (``T_x_w``; the
+        world without it), vectorised over landmarks and grouped by host keyframe."""
+        db, win = self.window.landmarks, self.window
+        lms = [db.landmark(int(i)) for i in landmark_ids]
+        if not lms:
+            return np.zeros((0, 3))
+        s = np.array([lm.s for lm in lms], dtype=np.float64).reshape(-1, 2)
+        d = np.array([lm.inv_dist for lm in lms])
+        hosts = np.array([lm.host_frame_id for lm in lms])
+        p_h = bearings_from_stereo(s) / d[:, None]
+        out = np.empty_like(p_h)
+        for host in np.unique(hosts):
+            mask = hosts == host
+            T = win.pose(int(host)) if T_x_w is None else T_x_w @ win.pose(int(host))
+            out[mask] = p_h[mask] @ T[:3, :3].T + T[:3, 3]
+        return out
+
     def window_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
         """Finite landmarks of the window: world points (M, 3) and inverse distances (M,)."""
         db = self.window.landmarks
-        points, inv = [], []
-        for host in self.window.keyframe_ids:
-            ids = [i for i in db.hosted_by(host) if db.landmark(i).inv_dist > 0.0]
-            if not ids:
-                continue
-            T = self.window.pose(host)
-            lms = [db.landmark(i) for i in ids]
-            d = np.array([lm.inv_dist for lm in lms])
-            b = np.array([lm.bearing for lm in lms])
-            points.append((b / d[:, None]) @ T[:3, :3].T + T[:3, 3])
-            inv.append(d)
-        if not points:
-            return np.zeros((0, 3)), np.zeros(0)
-        return np.concatenate(points), np.concatenate(inv)
+        ids = [i for host in self.window.keyframe_ids for i in sorted(db.hosted_by(host))]
+        inv = db.inverse_distances(ids)
+        finite = [i for i, d in zip(ids, inv) if d > 0.0]
+        return self._landmark_points(finite), inv[inv > 0.0]
 
     def _predict_pose(self, timestamp: float) -> np.ndarray:
         """Initial guess ``T_w_c`` for a new frame: constant velocity (the last relative motion,
@@ -133,17 +141,10 @@ class MonocularVO:
         T_w_old = self._last_pose
         T_old_w = se3_inverse(T_w_old)
         T_new_old = se3_inverse(self._predict_pose(timestamp)) @ T_w_old
-        db, win = self.window.landmarks, self.window
-        inv = db.inverse_distances(ids)
+        inv = self.window.landmarks.inverse_distances(ids)
         depths = np.full(len(ids), np.nan)
-        T_old_h: dict[int, np.ndarray] = {}
-        for k in np.flatnonzero(inv > 0.0):
-            lm = db.landmark(int(ids[k]))
-            host = lm.host_frame_id
-            if host not in T_old_h:
-                T_old_h[host] = T_old_w @ win.pose(host)
-            T = T_old_h[host]
-            depths[k] = T[2, :3] @ lm.point_in_host() + T[2, 3]
+        finite = np.flatnonzero(inv > 0.0)
+        depths[finite] = self._landmark_points(ids[finite], T_old_w)[:, 2]
         uv_new, valid = predict_positions(uv, self.camera, T_new_old, depths)
         return ids[valid], uv_new[valid]
 

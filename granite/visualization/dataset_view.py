@@ -45,18 +45,21 @@ def log_dataset(
         if inside.any():
             poses[inside] = interpolate_poses(gt.timestamps, gt.poses, dataset.timestamps[inside])
     counts = {"frames": 0, "images": 0, "poses": 0, "depth_maps": 0}
+    posed: list[int] = []
     for frame in progress(dataset.frames()):
         log.set_frame(frame.index, frame.timestamp)
         counts["frames"] += 1
         if frame.image is not None:
-            log.log_image(frame.image)
+            log.log_image(frame.image, frame.path)
             counts["images"] += 1
         if poses is not None and np.isfinite(poses[frame.index]).all():
-            log.log_camera_pose(poses[frame.index])
-            counts["poses"] += 1
+            posed.append(frame.index)
         depth = depth_of(frame.index) if depth_of is not None else None
         if depth is not None:
             log.log_depth(np.where(np.isfinite(depth), depth, 0.0).astype(np.float32))
             counts["depth_maps"] += 1
+    if posed:
+        log.send_camera_poses(posed, dataset.timestamps[posed], poses[posed])
+    counts["poses"] = len(posed)
     log.close()
     return counts

@@ -70,11 +70,13 @@ class RunView:
             self.log.log_trajectory("world/groundtruth", ground_truth.positions, GROUNDTRUTH_COLOR)
         self._records: list[FrameRecord] = []
 
-    def log_frame(self, record: FrameRecord, image: np.ndarray | None, diag: FrameDiagnostics) -> None:
+    def log_frame(self, record: FrameRecord, image: np.ndarray | None, diag: FrameDiagnostics,
+                  source: str | Path | None = None) -> None:
+        """One processed frame; ``source``: the image file (logged as is when PNG / JPEG)."""
         log = self.log
         log.set_frame(record.index, record.timestamp)
         if image is not None:
-            log.log_image(image)
+            log.log_image(image, source)
         if len(record.track_ids):
             log.log_tracks(record.track_uv, record.track_level, record.track_inverse_distance, self.d_max)
         log.log_scalar("tracked_points", diag.tracked_points)
@@ -101,24 +103,26 @@ class RunView:
         finite = positions[np.all(np.isfinite(positions), axis=1)]
         extent = float(np.ptp(finite, axis=0).max()) if len(finite) else 1.0
         frustum_depth = max(0.02 * extent, 0.05)
+        frames, stamps, cameras, keyframes, points, colors = [], [], [], [], [], []
         for record in self._records:
             k = index_row[record.index]
             if k is None or int(sub[k]) not in sims:
                 continue
             sim = sims[int(sub[k])]
-            s = sim[0]
-            self.log.set_frame(record.index, record.timestamp)
-            self.log.log_camera_pose(_aligned_pose(sim, trajectory.poses[k]))
-            if float(record.timestamp) in scale_error:
-                self.log.log_scalar("relative_scale_error", scale_error[float(record.timestamp)])
+            frames.append(record.index)
+            stamps.append(record.timestamp)
+            cameras.append(_aligned_pose(sim, trajectory.poses[k]))
             kf_rows = [index_row.get(f) for f in record.keyframe_ids]
-            self.log.log_keyframes(
-                [_aligned_pose(sim, trajectory.poses[r]) for r in kf_rows
-                 if r is not None and int(sub[r]) == int(sub[k])],
-                frustum_depth)
-            if len(record.landmarks_w):
-                colors = inverse_distance_colors(record.landmarks_inverse_distance / s, self.d_max)
-                self.log.log_points3d("world/landmarks", _apply(sim, record.landmarks_w), colors, radius=0.04)
+            keyframes.append(np.array([_aligned_pose(sim, trajectory.poses[r]) for r in kf_rows
+                                       if r is not None and int(sub[r]) == int(sub[k])]).reshape(-1, 4, 4))
+            points.append(_apply(sim, record.landmarks_w) if len(record.landmarks_w) else np.zeros((0, 3)))
+            colors.append(inverse_distance_colors(record.landmarks_inverse_distance / sim[0], self.d_max))
+            if float(record.timestamp) in scale_error:
+                self.log.add_scalar("relative_scale_error", record.index,
+                                    self.log.elapsed(record.timestamp), scale_error[float(record.timestamp)])
+        self.log.send_camera_poses(frames, stamps, np.array(cameras).reshape(-1, 4, 4))
+        self.log.send_keyframes(frames, stamps, keyframes, frustum_depth)
+        self.log.send_points3d("world/landmarks", frames, stamps, points, colors, radius=0.04)
         self.log.close()
 
     def _scale_errors(self, trajectory: Trajectory, sims: dict) -> dict[float, float]:
