@@ -120,3 +120,35 @@ def test_run_cli_bad_input(tmp_path, capsys):
     (root / "calib.json").unlink()
     assert main(["run", str(root), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     assert "calib" in capsys.readouterr().err
+
+
+def test_map_lost_in_a_long_turn_is_reinitialised_with_the_scale_it_had(tmp_path):
+    """Fly 2 s, turn 180 degrees in place (every finite landmark leaves the view, new ones are at
+    infinity), fly 3 s along the new heading: the map is initialised again in the same sub-map,
+    and its scale stays close to the first one (the scene keeps its distance)."""
+    n_leg1, n_turn, n_leg2 = 40, 60, 60
+    pitch, height, speed = 50, 10.0, 2.0
+    ts = np.arange(n_leg1 + n_turn + n_leg2) / 20.0
+    poses = [look_down_pose([0.0, speed * k / 20.0, height], pitch_deg=pitch) for k in range(n_leg1)]
+    stop = poses[-1][:3, 3].copy()
+    yaw = np.pi * (1 - np.cos(np.pi * np.arange(1, n_turn + 1) / n_turn)) / 2
+    poses += [look_down_pose(stop, yaw=y, pitch_deg=pitch) for y in yaw]
+    poses += [look_down_pose(stop + [0.0, -speed * k / 20.0, 0.0], yaw=np.pi, pitch_deg=pitch)
+              for k in range(1, n_leg2 + 1)]
+    poses = np.array(poses)
+    dataset = open_dataset(write_planar_dataset(tmp_path / "turn", ts, poses))
+    result = run_vo(dataset, VoConfig(), progress=False)
+    _check_no_nan(result)
+    states = [d.state for d in result.diagnostics]
+    assert result.restarts == 0 and states[-1] == "tracking"
+    reinit = [i for i, s in enumerate(states) if s == "reinit"]
+    assert len(reinit) == 1 and reinit[0] >= n_leg1 + n_turn // 2
+    # Scale of each leg: estimated over true length of its last second of motion.
+    est = result.trajectory.positions
+
+    def scale(a, b):
+        return np.linalg.norm(est[b] - est[a]) / np.linalg.norm(poses[b, :3, 3] - poses[a, :3, 3])
+
+    s1 = scale(n_leg1 - 21, n_leg1 - 1)
+    s2 = scale(len(ts) - 21, len(ts) - 1)
+    assert 0.7 < s2 / s1 < 1.4

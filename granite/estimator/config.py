@@ -43,6 +43,11 @@ class EstimatorConfig:
         keyframe_extra_iterations: extra iterations after a keyframe was inserted.
         constant_velocity: not in the reference (which starts from the last pose): start each
             frame's optimisation from a constant-velocity prediction.
+        reinit_keeps_scale: not in the reference (which takes the fixed initial scale): a map
+            re-initialisation after the map was lost (every point at infinity, e.g. after a
+            long turn in place) scales the new map so the scene keeps the mean distance it had
+            in the last frame that saw enough finite landmarks, and the sub-map continues;
+            false = the fixed initial scale and a new sub-map.
         motion_guided_tracking: not in the reference: the frontend first tracks each point
             from where the constant-velocity pose predicts it (landmarks with d > 0 by their
             depth, the others by the infinite homography), then as the reference does.
@@ -59,6 +64,7 @@ class EstimatorConfig:
     keyframe_extra_iterations: int = 2
     constant_velocity: bool = True
     motion_guided_tracking: bool = True
+    reinit_keeps_scale: bool = True
 
     def __post_init__(self) -> None:
         if not 0.0 < self.keyframe_entropy_fraction <= 1.0:
@@ -70,7 +76,8 @@ class EstimatorConfig:
                 raise ConfigError(f"estimator: {name} must be an integer >= 0, got {value!r}")
         if not (math.isfinite(self.min_triangulation_distance) and self.min_triangulation_distance >= 0):
             raise ConfigError("estimator: min_triangulation_distance must be >= 0")
-        for name in ("previous_frame_as_keyframe", "constant_velocity", "motion_guided_tracking"):
+        for name in ("previous_frame_as_keyframe", "constant_velocity", "motion_guided_tracking",
+                     "reinit_keeps_scale"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"estimator: {name} must be true or false")
 

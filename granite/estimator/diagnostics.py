@@ -7,7 +7,9 @@ One row per processed frame (skipped frames included). Columns:
 ``frame_index``        index of the frame in the dataset
 ``submap``             sub-map index (increments after every restart)
 ``state``              ``skipped`` (image missing/corrupt), ``init`` (no map yet, rotation-only
-                       tracking), ``tracking``, ``lost`` (tracking failure: restart follows)
+                       tracking), ``tracking``, ``reinit`` (the map, lost with every point at
+                       infinity, was initialised again in this frame; same sub-map),
+                       ``lost`` (tracking failure: restart follows)
 ``tracked_points``     optical-flow tracks in this frame
 ``finite_landmarks``   connected landmarks with inverse distance > 0
 ``infinite_landmarks`` connected landmarks at infinity (d = 0)
@@ -30,7 +32,7 @@ from pathlib import Path
 from granite.errors import InputError
 from granite.io import atomic_write_text
 
-FRAME_STATES = ("skipped", "init", "tracking", "lost")
+FRAME_STATES = ("skipped", "init", "tracking", "reinit", "lost")
 
 
 @dataclass

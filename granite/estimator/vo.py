@@ -31,6 +31,10 @@ from granite.optical_flow import FrameToFrameOpticalFlow, OpticalFlowResult
 from granite.optical_flow.prediction import predict_positions
 
 
+#: Finite landmarks a frame must see to update the scene distance kept for re-initialisation.
+_SCENE_MIN_POINTS = 20
+
+
 @dataclass
 class _Tracks:
     """The frontend's tracks of one window frame, indexed by track id."""
@@ -73,6 +77,9 @@ class MonocularVO:
         self._motion: tuple[np.ndarray, float] | None = None  # (T_prev_last, dt) of the last step
         self._last_time = 0.0
         self._map_initialized = False
+        #: mean distance (map units) of the finite landmarks seen in the last frame that saw at
+        #: least ``_SCENE_MIN_POINTS`` of them: the scale a re-initialisation carries over.
+        self._scene_distance: float | None = None
         self._previous_frame: int | None = None
         self.keyframe_log: list[tuple[int, int]] = []  # (frame id, sub-map) of every keyframe
         self.export_landmarks = False  # fill FrameOutput.landmarks_w (costs ~1 ms per frame)
@@ -87,6 +94,7 @@ class MonocularVO:
         self._tracks.clear()
         self.selector.reset()
         self._map_initialized = False
+        self._scene_distance = None
         self._previous_frame = None
         self.submap += 1
         self._last_pose = np.eye(4)
@@ -242,11 +250,17 @@ class MonocularVO:
         inlier tracks become landmarks hosted by ``kf``, the prior is reset to the gauge of
         ``kf`` and the scale-fix term of Eq. 9 fixes their distance."""
         T_w_k = self.window.pose(kf)
+        scale = 1.0
+        if self._map_initialized:  # the map was lost (e.g. all points at infinity after a turn)
+            if self.config.estimator.reinit_keeps_scale and self._scene_distance:
+                # Same sub-map: choose the new scale so the scene keeps its mean distance.
+                inliers = result.points_k[: len(ids)][result.inliers[: len(ids)]]
+                scale = self._scene_distance / float(np.mean(np.linalg.norm(inliers, axis=1)))
+            else:  # an unrelated scale: a new sub-map
+                self.submap += 1
         T_c_k = np.eye(4)
-        T_c_k[:3, :3], T_c_k[:3, 3] = result.R_c_k, result.t_c_k
+        T_c_k[:3, :3], T_c_k[:3, 3] = result.R_c_k, scale * result.t_c_k
         T_w_c = T_w_k @ se3_inverse(T_c_k)
-        if self._map_initialized:  # the map was lost: a new scale means a new sub-map
-            self.submap += 1
         tracks_k, tracks_c = self._tracks[kf], self._tracks[frame_id]
         self.window.reset()
         self._tracks = {kf: tracks_k, frame_id: tracks_c}
@@ -255,12 +269,12 @@ class MonocularVO:
         for tid, point, inlier in zip(ids, result.points_k[: len(ids)], result.inliers[: len(ids)]):
             if not inlier:
                 continue
-            distance = float(np.linalg.norm(point))
+            distance = scale * float(np.linalg.norm(point))
             tid = int(tid)
             self.window.add_landmark(tid, kf, point / distance, 1.0 / distance)
             self.window.add_observation(tid, kf, tracks_k.positions[tid], tracks_k.levels[tid])
             self.window.add_observation(tid, frame_id, tracks_c.positions[tid], tracks_c.levels[tid])
-        self.window.set_scale_fix(kf, frame_id, float(np.linalg.norm(result.t_c_k)))
+        self.window.set_scale_fix(kf, frame_id, float(np.linalg.norm(T_c_k[:3, 3])))
         self._add_landmarks_hosted_by(kf)  # outlier tracks of kf: at infinity or triangulated
         self._map_initialized = True
         self.keyframe_log.append((frame_id, self.submap))
@@ -332,8 +346,10 @@ class MonocularVO:
             win.add_observations(frame_id, tracks.ids, tracks.positions, tracks.levels, skip_unknown=True)
 
         finite, _ = self._connected(frame_id)
+        reinitialized = False
         if not first_of_submap and finite < est.min_finite_observations:
-            self._try_initialization(frame_id)
+            had_map = self._map_initialized
+            reinitialized = self._try_initialization(frame_id) and had_map
 
         negative_entropy, diverged = None, False
         if len(win.frame_ids) > 1:
@@ -344,7 +360,7 @@ class MonocularVO:
                 diverged = True  # treated as a tracking failure below
 
         finite, infinite = self._connected(frame_id)
-        state = "tracking" if self._map_initialized else "init"
+        state = ("reinit" if reinitialized else "tracking") if self._map_initialized else "init"
         T_w_c = win.pose(frame_id)
         submap = self.submap
         if diverged or (len(win.keyframe_ids) >= 2 and finite + infinite < est.failure_min_connected):
@@ -361,8 +377,11 @@ class MonocularVO:
             self._last_pose, self._last_time = T_w_c, timestamp
             self._previous_frame = frame_id
 
-        db = win.landmarks
-        inv = db.inverse_distances(tracks.ids)
+        inv = win.landmarks.inverse_distances(tracks.ids)
+        if state in ("tracking", "reinit"):
+            seen = inv[inv > 0.0]
+            if len(seen) >= _SCENE_MIN_POINTS:
+                self._scene_distance = float(np.mean(1.0 / seen))
         diag = FrameDiagnostics(
             timestamp, frame_id, submap, state, len(tracks), finite, infinite, keyframe_taken,
             negative_entropy if negative_entropy is not None and np.isfinite(negative_entropy) else None,
