@@ -225,6 +225,15 @@ def test_window_gradient_matches_robust_cost():
         win.landmarks.landmark(lm).inv_dist = 0.0
     hess = win.hessian_blocks()
     assert np.any(hess.H_no_motion != 0) and np.any(hess.H_scale_fix != 0)
+    # The window scatters the no-motion terms of all pairs at once: same as term by term.
+    problem = win._problem()
+    expected = np.zeros_like(hess.H_no_motion)
+    for h, t in win._no_motion_pairs(problem):
+        fh, ft = problem.frame_ids[h], problem.frame_ids[t]
+        H, _, _ = no_motion_terms(win.pose(fh), win.pose(ft), 0.5)
+        rows = np.r_[6 * hess.index(fh):6 * hess.index(fh) + 6, 6 * hess.index(ft):6 * hess.index(ft) + 6]
+        expected[np.ix_(rows, rows)] += H
+    np.testing.assert_allclose(hess.H_no_motion, expected, rtol=0, atol=1e-15)
     g_pose = hess.b - hess.b_reprojection + hess.b_reprojection_raw
     eps = 1e-6
     for f in win.frame_ids[1:]:

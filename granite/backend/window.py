@@ -31,7 +31,7 @@ import numpy as np
 from granite.backend.config import BackendConfig
 from granite.backend.hessian import WindowHessian, marginalize_dense
 from granite.backend.landmarks import LandmarkDatabase, PackedObservations
-from granite.backend.priors import MargPrior, ScaleFix, no_motion_terms
+from granite.backend.priors import MargPrior, ScaleFix
 from granite.backend.reprojection import (
     Workspace,
     linearize,
@@ -67,6 +67,8 @@ class OptimizeReport:
     costs: tuple[float, ...]
     snapshot: WindowHessian | None
     timings: dict[str, float]
+    #: a Gauss-Newton step raised the cost and was undone (Levenberg-Marquardt took over).
+    reverted: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,6 +104,12 @@ class _Problem:
         self.poses_lin[free] = self.poses[free]
 
 
+#: After a Gauss-Newton step raised the cost, this many further :meth:`SlidingWindow.optimize`
+#: calls use Levenberg-Marquardt (the window is in a badly conditioned stretch; GN steps taken
+#: there drift even when they lower the cost of each call).
+LM_CALLS_AFTER_FAILED_STEP = 40
+
+
 class SlidingWindow:
     """Monocular sliding-window estimator over keyframe/frame poses and inverse-distance
     landmarks; see the module docstring for the workflow and ``docs/backend.md``."""
@@ -119,6 +127,8 @@ class SlidingWindow:
         self.landmarks = LandmarkDatabase()
         self.prior = MargPrior.empty()
         self.scale_fix: ScaleFix | None = None
+        #: optimisations left that use Levenberg-Marquardt after a Gauss-Newton step failed
+        self._lm_calls_left = 0
 
     @property
     def frame_ids(self) -> list[int]:
@@ -303,15 +313,21 @@ class SlidingWindow:
         b_n = np.zeros(n6)
         cost_n = 0.0
         fids = problem.frame_ids
-        for h, t in pairs:
-            if include is not None and not include & {fids[h], fids[t]}:
-                continue
-            Hn, bn, cn = no_motion_terms(problem.poses[h], problem.poses[t],
-                                         self.config.no_motion_weight)
-            rows = np.concatenate([np.arange(6 * h, 6 * h + 6), np.arange(6 * t, 6 * t + 6)])
-            H_n[np.ix_(rows, rows)] += Hn
-            b_n[rows] += bn
-            cost_n += cn
+        if include is not None:
+            pairs = [(h, t) for h, t in pairs if include & {fids[h], fids[t]}]
+        if pairs:  # no_motion_terms for every pair, scattered at once
+            w = self.config.no_motion_weight
+            hs, ts = np.array(pairs, dtype=np.int64).T
+            diff = problem.poses[ts, :3, 3] - problem.poses[hs, :3, 3]  # (P, 3)
+            k = np.arange(3)
+            rh = (6 * hs[:, None] + k).ravel()
+            rt = (6 * ts[:, None] + k).ravel()
+            ones = np.full(rh.shape, w)
+            np.add.at(H_n, (np.concatenate([rh, rt, rh, rt]), np.concatenate([rh, rt, rt, rh])),
+                      np.concatenate([ones, ones, -ones, -ones]))
+            np.add.at(b_n, rh, -w * diff.ravel())
+            np.add.at(b_n, rt, w * diff.ravel())
+            cost_n = float(w * np.sum(diff * diff))
         return (H_p, b_p, cost_p), (H_s, b_s, cost_s), (H_n, b_n, cost_n)
 
     def _prior_cost(self, problem: _Problem, pairs: list[tuple[int, int]]) -> float:
@@ -405,7 +421,9 @@ class SlidingWindow:
         solves the dense pose system, back-substitutes landmarks and updates poses with the
         decoupled increment (paper Eq. 14) and inverse distances with
         ``d <- clip(d, 0, max_inv_dist)`` (paper Sec. IV-B). Stops after ``max_iterations``
-        or when the largest pose increment is below ``step_tolerance``.
+        or when the largest pose increment is below ``step_tolerance``. A Gauss-Newton step that
+        raises the cost is undone and the remaining iterations are Levenberg-Marquardt steps
+        (``report.reverted``).
         """
         cfg = self.config
         iters = cfg.max_iterations if max_iterations is None else int(max_iterations)
@@ -417,6 +435,10 @@ class SlidingWindow:
         converged = False
         lam = cfg.lm_lambda_init
         done = 0
+        undo = None  # state before the last Gauss-Newton step
+        reverted = False
+        lm_mode = cfg.use_lm or self._lm_calls_left > 0
+        self._lm_calls_left = max(self._lm_calls_left - 1, 0)
         if not problem.frame_ids:
             return OptimizeReport(0, 0.0, 0.0, True, (), None, timings)
         for it in range(iters):
@@ -428,17 +450,26 @@ class SlidingWindow:
             t2 = time.perf_counter()
             timings["linearize"] += t1 - t0
             timings["priors"] += t2 - t1
+            if not lm_mode and undo is not None and not system.cost <= costs[-1] * (1.0 + 1e-9):
+                # The last Gauss-Newton step raised the cost (far from the minimum, or from the
+                # first estimates of marginalised states): undo it and go on with damped
+                # (Levenberg-Marquardt) steps, which only accept steps that lower the cost.
+                problem.poses[:], pk.lm_s[:], pk.lm_d[:] = undo
+                problem.sync_lin()
+                reverted, lm_mode, undo = True, True, None
+                self._lm_calls_left = LM_CALLS_AFTER_FAILED_STEP
+                continue
             costs.append(system.cost)
             if snapshot_iteration is not None and it <= snapshot_iteration:
                 snapshot = system
             done = it + 1
-            if not cfg.use_lm:
+            if not lm_mode:
                 t3 = time.perf_counter()
                 dx = solve_normal_equations(system.H, system.b)
                 dl = back_substitute(dx, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.w, lin.J_h,
                                      lin.J_t, lin.J_l, red[4], red[5])
                 t4 = time.perf_counter()
-                self._apply_step(problem, dx, dl)
+                undo = self._apply_step(problem, dx, dl)
                 t5 = time.perf_counter()
                 timings["solve"] += t4 - t3
                 timings["update"] += t5 - t4
@@ -455,7 +486,7 @@ class SlidingWindow:
         final_cost = self._cost(problem, self._no_motion_pairs(problem))
         self._write_back(problem)
         return OptimizeReport(done, costs[0], final_cost, converged, tuple(costs), snapshot,
-                              timings)
+                              timings, reverted)
 
     def _lm_step(self, problem: _Problem, lin, red, system: WindowHessian, lam: float,
                  pairs, timings) -> tuple[str, float]:

@@ -97,6 +97,7 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
             atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=2) + "\n")
     if view is not None:
         view.finish(result.trajectory)
+        result.logging_startup_seconds, result.logging_seconds = view.startup_seconds, view.seconds
     return result, evaluation
 
 

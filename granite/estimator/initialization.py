@@ -121,6 +121,16 @@ def _rotation_only(bk: np.ndarray, bc: np.ndarray, thr_sq: float, xc: np.ndarray
     return err
 
 
+def _parallax_deg(h: _Hypothesis, inliers: np.ndarray, mean_distance: float) -> float:
+    """Parallax angle alpha = 2 atan(|t| / (2 rho)) of a hypothesis scaled so that its inlier
+    points have mean distance ``mean_distance`` (= rho); 0 without inliers."""
+    valid = inliers & h.valid
+    if not valid.any():
+        return 0.0
+    scale = mean_distance / float(np.mean(np.linalg.norm(h.points[valid], axis=1)))
+    return float(np.degrees(2.0 * np.arctan(np.linalg.norm(h.t) * scale / (2.0 * mean_distance))))
+
+
 def initialize_two_view(
     bearings_k: np.ndarray,
     bearings_c: np.ndarray,
@@ -168,7 +178,11 @@ def initialize_two_view(
 
     best = min(hypotheses, key=score)
     best_inliers = best.errors_sq < thr_sq
-    if best_inliers.sum() >= 8:  # nonlinear refinement on the inliers, kept if it scores better
+    # Nonlinear refinement on the inliers, kept if it scores better. It is the costly step, and
+    # while the camera turns in place (initialisation is attempted every frame) it cannot
+    # rescue a hypothesis: refine only one that is within reach of the acceptance tests.
+    if best_inliers.sum() >= max(8, config.min_inliers // 2) and \
+            _parallax_deg(best, best_inliers, config.mean_distance) >= 0.5 * config.min_parallax_deg:
         R, t = _refine(best.R, best.t, xk[best_inliers], xc[best_inliers], thr)
         refined = _evaluate(best.model, R, t, bk, bc, xk, xc)
         if score(refined) <= score(best):
@@ -190,7 +204,7 @@ def initialize_two_view(
     distances = np.linalg.norm(best.points[best_inliers], axis=1)
     scale = config.mean_distance / float(np.mean(distances))
     t_scaled = best.t * scale
-    parallax = np.degrees(2.0 * np.arctan(np.linalg.norm(t_scaled) / (2.0 * config.mean_distance)))
+    parallax = _parallax_deg(best, best_inliers, config.mean_distance)
 
     inliers_all = np.zeros(n_all, dtype=bool)
     inliers_all[idx[best_inliers]] = True

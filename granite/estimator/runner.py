@@ -39,6 +39,9 @@ class RunResult:
     keyframes: list[tuple[float, int, int]]
     skipped: list[tuple[int, str]] = field(default_factory=list)
     interrupted: bool = False
+    #: wall time spent writing the rerun recording (one-time startup, frames + 3D content).
+    logging_startup_seconds: float = 0.0
+    logging_seconds: float = 0.0
 
     @property
     def restarts(self) -> int:
