@@ -19,16 +19,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as `granite run` (same numbers)
 
-from granite.estimator.config import VoConfig
-from granite.cli.run_cmd import perform_run
-from granite.io import open_dataset
+import numpy as np  # noqa: E402
+
+from granite.estimator.config import VoConfig  # noqa: E402
+from granite.cli.run_cmd import perform_run  # noqa: E402
+from granite.io import open_dataset  # noqa: E402
 
 SCENARIOS = ("spiral", "rotation", "hover", "survey", "framedrop", "aggressive")
 #: Frame windows rendered by default (20 Hz), chosen to hold each scenario's characteristic
