@@ -10,7 +10,8 @@ Entity layout (world frame z up for the test-bench; all poses ``T_w_c``):
 ``world/camera/image``          the camera image
 ``world/camera/depth``          planar depth in metres (dataset recordings only)
 ``world/camera/image/tracks``   tracked points, coloured by inverse distance
-                                (:mod:`granite.visualization.colors`), radius = patch size
+                                (:mod:`granite.visualization.colors`)
+``world/camera/image/patches``  a ring per track: its patch radius at the creation level
 ``world/keyframes``             keyframes of the current window as blue wireframe frustums
 ``world/landmarks``             landmarks of the window, same colours as the 2D points
 ``plots/<name>``                time series (tracked points, landmarks, entropy, relative scale error)
@@ -45,6 +46,18 @@ ESTIMATE_COLOR = (230, 40, 40)
 KEYFRAME_COLOR = (40, 80, 255)
 
 
+#: Dot radius of a track and line radius of its patch ring, in image pixels.
+TRACK_DOT_RADIUS_PX = 2.0
+PATCH_RING_WIDTH_PX = 0.5
+_RING = np.linspace(0.0, 2.0 * np.pi, 17)
+
+
+def circle_strips(centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Closed 16-gons (N, 17, 2) of the given radii (N,) around ``centres`` (N, 2)."""
+    ring = np.stack([np.cos(_RING), np.sin(_RING)], axis=1)  # (17, 2)
+    return np.asarray(centres, dtype=np.float64)[:, None, :] + np.asarray(radii)[:, None, None] * ring
+
+
 def frustum_wireframes(poses_w_c: np.ndarray, K: np.ndarray, resolution, depth: float) -> np.ndarray:
     """Line strips (N, 10, 3) drawing the frustum of each pose ``T_w_c`` (N, 4, 4): apex to the
     four image corners unprojected to planar depth ``depth`` through the pinhole ``K``, and the
@@ -60,14 +73,22 @@ def frustum_wireframes(poses_w_c: np.ndarray, K: np.ndarray, resolution, depth: 
 
 
 def default_blueprint() -> rrb.Blueprint:
-    """Camera image with tracks beside the 3D world, time series underneath."""
+    """Camera image with tracks beside the 3D world; underneath, three time series: point
+    counts, negative entropy with keyframe events, and the relative scale error."""
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
                 rrb.Spatial2DView(name="camera", origin="world/camera/image"),
                 rrb.Spatial3DView(name="world", origin="world"),
             ),
-            rrb.TimeSeriesView(name="diagnostics", origin="plots"),
+            rrb.Horizontal(
+                rrb.TimeSeriesView(name="points", origin="plots", contents=[
+                    "plots/tracked_points", "plots/finite_landmarks", "plots/infinite_landmarks"]),
+                rrb.TimeSeriesView(name="negative entropy, keyframes", origin="plots", contents=[
+                    "plots/negative_entropy", "plots/keyframe", "plots/submap"]),
+                rrb.TimeSeriesView(name="relative scale error", origin="plots", contents=[
+                    "plots/relative_scale_error", "plots/scale_drift_indicator"]),
+            ),
             row_shares=[3, 1],
         ),
         collapse_panels=True,
@@ -193,14 +214,18 @@ class RerunLogger:
         inverse_distance: np.ndarray | None = None,
         d_max: float = 1.0,
     ) -> None:
-        """2D tracks; ``inverse_distance`` NaN = no landmark, 0 = at infinity."""
+        """2D tracks; ``inverse_distance`` NaN = no landmark, 0 = at infinity. Each track is a
+        dot (``world/camera/image/tracks``) and a ring of its patch radius at the creation
+        level (``world/camera/image/patches``), both in the inverse-distance colour."""
         n = len(positions)
         d = np.full(n, np.nan) if inverse_distance is None else np.asarray(inverse_distance)
+        colors = inverse_distance_colors(d, d_max)
         radii = PATCH_RADIUS_PX * np.power(2.0, np.asarray(levels, dtype=np.float64))
-        self.rec.log(
-            "world/camera/image/tracks",
-            rr.Points2D(positions, radii=radii, colors=inverse_distance_colors(d, d_max)),
-        )
+        self.rec.log("world/camera/image/tracks",
+                     rr.Points2D(positions, radii=TRACK_DOT_RADIUS_PX, colors=colors))
+        self.rec.log("world/camera/image/patches",
+                     rr.LineStrips2D(circle_strips(positions, radii), colors=colors,
+                                     radii=PATCH_RING_WIDTH_PX))
 
     def log_scalar(self, name: str, value: float) -> None:
         """A point of the time series ``plots/<name>`` at the current frame. Points are buffered
