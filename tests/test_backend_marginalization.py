@@ -317,3 +317,48 @@ def test_incremental_sliding_window_tracks_truth():
         err = pose_delta(win.pose(fid), scene.pose_of(fid))
         assert np.linalg.norm(err[:3]) < 0.1 and np.degrees(np.linalg.norm(err[3:])) < 0.5
     assert isinstance(win.prior, MargPrior) and len(win.prior.frame_ids) > 0
+
+
+def _kf_window(seed):
+    scene = _scene(seed=seed, num_frames=7)
+    win = build_window(scene, BackendConfig(**LSQ), pose_noise=(0.01, 0.005),
+                       inv_dist_noise=0.1, seed=seed + 1)
+    kfs = [f for f, k in zip(scene.frame_ids, scene.keyframe) if k]
+    assert len(kfs) >= 4
+    return scene, win, kfs
+
+
+def test_marginalising_a_keyframe_outside_the_prior_keeps_the_prior():
+    """The new prior replaces the old one, so it must carry the old one's information (here the
+    gauge prior of the first frame) even when the marginalised keyframe is not one of its
+    states."""
+    scene, win, kfs = _kf_window(8)
+    win.set_scale_fix(kfs[0], kfs[1], _true_length(scene, kfs[0], kfs[1]))
+    win.optimize(max_iterations=3)
+    assert _null_dim(win.hessian_blocks().H) == 0
+    report = win.marginalize([kfs[2]])
+    assert report.marginalized_frames == (kfs[2],)
+    assert kfs[0] in win.prior.frame_ids
+    assert _null_dim(win.hessian_blocks().H) == 0
+
+
+def test_scale_fix_leaving_without_links_is_anchored_again():
+    """A scale-fix frame whose landmarks are gone takes the scale with it when marginalised (its
+    distance to the other frame constrains nothing left); the window then fixes the scale again
+    at its current value instead of leaving it free."""
+    scene, win, kfs = _kf_window(9)
+    lonely = kfs[1]
+    db = win.landmarks
+    for lm in list(db.hosted_by(lonely)):
+        db.remove_landmark(lm)
+    for lm in list(db.observed_in(lonely)):
+        db.remove_observation(lm, lonely)
+    win.set_scale_fix(kfs[0], lonely, _true_length(scene, kfs[0], lonely))
+    win.optimize(max_iterations=3)
+    lengths = {f: win.pose(f)[:3, 3] for f in win.keyframe_ids}
+    report = win.marginalize([lonely])
+    assert report.scale_fix_marginalized
+    sf = win.scale_fix
+    assert sf is not None and lonely not in (sf.frame_i, sf.frame_j)
+    assert sf.length == pytest.approx(float(np.linalg.norm(lengths[sf.frame_i] - lengths[sf.frame_j])))
+    assert _null_dim(win.hessian_blocks().H) == 0

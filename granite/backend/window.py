@@ -286,14 +286,17 @@ class SlidingWindow:
     def _prior_terms(self, problem: _Problem, pairs: list[tuple[int, int]],
                      include: set[int] | None = None):
         """Dense prior, scale-fix and no-motion terms over the problem's poses. With
-        ``include`` only terms touching those frame ids are added (marginalisation)."""
+        ``include`` only scale-fix and no-motion terms touching those frame ids are added
+        (marginalisation); the prior is always added."""
         n6 = 6 * len(problem.frame_ids)
         idx = problem.index
         poses = {f: problem.poses[i] for f, i in idx.items()}
         H_p = np.zeros((n6, n6))
         b_p = np.zeros(n6)
         cost_p = 0.0
-        if self.prior.frame_ids and (include is None or include & set(self.prior.frame_ids)):
+        # The current prior always enters (also when marginalising frames it does not touch:
+        # the new prior replaces it and must keep its information, e.g. the gauge).
+        if self.prior.frame_ids:
             Hm, bm, cost_p = self.prior.linearize(poses)
             rows = np.concatenate([np.arange(6 * idx[f], 6 * idx[f] + 6)
                                    for f in self.prior.frame_ids])
@@ -584,8 +587,28 @@ class SlidingWindow:
             del self._frames[f]
         if sf_moved:
             self.scale_fix = None
+            if not self._prior_links(sf_frames - set(marg)):
+                self._reanchor_scale_fix(sf.weight)
         return MarginalizationReport(tuple(remove), tuple(marg), tuple(sorted(removed_lms)),
                                      sf_moved)
+
+    def _prior_links(self, kept_scale_frames: set[int]) -> bool:
+        """Whether the new prior ties the remaining frame of the scale fix to another frame
+        (then it carries the scale the fix held)."""
+        frames = set(self.prior.frame_ids)
+        return bool(frames & kept_scale_frames) and len(frames) > 1
+
+    def _reanchor_scale_fix(self, weight: float) -> None:
+        """Not in the reference: the scale fix left with a frame that had no other link, so
+        the prior holds no scale; fix the (unobservable) scale again at its current value,
+        between the two oldest keyframes whose distance is not negligible."""
+        kfs = self.keyframe_ids
+        for i, a in enumerate(kfs):
+            for b in kfs[i + 1:]:
+                length = float(np.linalg.norm(self._frames[a].T_w_c[:3, 3] - self._frames[b].T_w_c[:3, 3]))
+                if length > 1e-6:
+                    self.scale_fix = ScaleFix(a, b, length, weight)
+                    return
 
     def _marginalize_states(self, marg: set[int], dropped: set[int]) -> None:
         """Replace the prior by the marginal of (prior + factors touching ``marg``) over the
