@@ -65,19 +65,20 @@ def test_recording_holds_images_points_trajectories_and_series(run, recording):
     tracked = _column(table, "/plots/tracked_points:Scalar")
     positions = _column(table, "/world/camera/image/tracks:Position2D")
     colors = _column(table, "/world/camera/image/tracks:Color")
-    rings = _column(table, "/world/camera/image/patches:LineStrip2D")
-    for f, n_plot, pos, col, ring in zip(frames, tracked, positions, colors, rings):
+    halves = _column(table, "/world/camera/image/patches:HalfSize2D")
+    centres_2d = _column(table, "/world/camera/image/patches:Position2D")
+    for f, n_plot, pos, col, half in zip(frames, tracked, positions, colors, halves):
         assert n_plot == [diags[f].tracked_points]
         assert len(pos) == diags[f].tracked_points
-        assert len(col) == len(pos) == len(ring)
-    # Patch rings: centred on the track, radius 5.25 px * 2^level at the creation level.
+        assert len(col) == len(pos) == len(half)
+    # Patch outlines: centred on the track, half size 5.25 px * 2^level at the creation level.
     k = frames.index(N - 1)
-    centres, ring = np.array(positions[k]), np.array(rings[k], dtype=np.float64)
-    radii = np.linalg.norm(ring - centres[:, None, :], axis=2)
-    levels = np.log2(radii.mean(axis=1) / 5.25)
-    np.testing.assert_allclose(radii, np.repeat(radii[:, :1], radii.shape[1], axis=1), rtol=1e-4)
-    np.testing.assert_allclose(levels, np.round(levels), atol=1e-4)
-    assert levels.min() > -1e-4 and levels.max() > 0.5  # some patches from coarser levels
+    np.testing.assert_allclose(centres_2d[k], positions[k])
+    half = np.array(halves[k], dtype=np.float64)
+    levels = np.log2(half[:, 0] / 5.25)
+    np.testing.assert_array_equal(half[:, 0], half[:, 1])
+    np.testing.assert_allclose(levels, np.round(levels), atol=1e-5)
+    assert levels.min() > -1e-5 and levels.max() > 0.5  # some patches from coarser levels
     # Colours: grey tracks without a landmark, magenta at infinity, the ramp otherwise.
     packed = lambda c: int.from_bytes(bytes([*c, 255]), "big")  # noqa: E731
     palette = {packed(UNMAPPED_COLOR), packed(INFINITY_COLOR)}
