@@ -6,8 +6,6 @@ Ground truth comes from the generator, not from the code under test.
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
