@@ -33,7 +33,8 @@ class BackendConfig:
         scale_fix_weight: default weight of the scale-fix residual of paper Eq. 9.
         max_inv_dist: inverse distances are clamped to ``[0, max_inv_dist]`` after every step.
         max_iterations: Gauss-Newton iterations per :meth:`SlidingWindow.optimize` call.
-        step_tolerance: stop when the largest pose increment component is below this.
+        step_tolerance: stop when the largest pose increment component is below this (the
+            reference stops at 1e-4 too).
         outlier_threshold: reprojection error [px] above which an observation is an outlier.
         landmark_damping: added to the diagonal of each landmark's 3x3 block before it is
             eliminated, so that an unobservable inverse distance (no baseline) gives a zero step
@@ -53,7 +54,7 @@ class BackendConfig:
     scale_fix_weight: float = 1e8
     max_inv_dist: float = 5.0
     max_iterations: int = 7
-    step_tolerance: float = 1e-6
+    step_tolerance: float = 1e-4
     outlier_threshold: float = 3.0
     landmark_damping: float = 1e-9
     use_lm: bool = False
