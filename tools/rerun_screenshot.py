@@ -15,7 +15,9 @@ Made the README's picture: ``granite run assets/sequences/spiral --out runs/spir
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -35,7 +37,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("recording", type=Path)
     parser.add_argument("out", type=Path)
-    parser.add_argument("--wait", type=float, default=35.0, help="seconds to let the viewer load")
+    parser.add_argument("--wait", type=float, default=45.0,
+                        help="seconds to wait at least; then shots every 10 s until two agree")
+    parser.add_argument("--max-wait", type=float, default=240.0, help="give up waiting after this")
     parser.add_argument("--size", default="1600x900", help="viewport WIDTHxHEIGHT")
     parser.add_argument("--chromium", default=shutil.which("chromium") or "/usr/bin/chromium")
     sibling = Path(sys.executable).with_name("rerun")
@@ -56,7 +60,8 @@ def main() -> int:
     rerun = args.rerun_bin
     web, grpc = _free_port(), _free_port()
     server = subprocess.Popen([rerun, "--serve-web", str(args.recording), "--web-viewer-port", str(web),
-                               "--port", str(grpc)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                               "--port", str(grpc)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              start_new_session=True)  # the rerun wrapper starts a child server
     try:
         time.sleep(3.0)
         url = f"http://127.0.0.1:{web}/?renderer=webgl&url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy"
@@ -64,12 +69,21 @@ def main() -> int:
             browser = p.chromium.launch(executable_path=args.chromium, headless=True, args=CHROMIUM_FLAGS)
             page = browser.new_page(viewport={"width": width, "height": height})
             page.goto(url)
+            # Software rendering loads slowly (70-85 s seen for a 7 MB recording under load):
+            # wait until two shots 10 s apart are identical.
             time.sleep(args.wait)
+            shot, waited = page.screenshot(), args.wait
+            while waited < args.max_wait:
+                time.sleep(10.0)
+                waited += 10.0
+                previous, shot = shot, page.screenshot()
+                if shot == previous:
+                    break
             args.out.parent.mkdir(parents=True, exist_ok=True)
-            page.screenshot(path=str(args.out))
+            args.out.write_bytes(shot)
             browser.close()
     finally:
-        server.terminate()
+        os.killpg(server.pid, signal.SIGTERM)  # the whole group, wrapper and server
         server.wait(timeout=10)
     print(f"screenshot: {args.out}")
     return 0
