@@ -58,11 +58,4 @@ def make_camera(
         if not math.isfinite(val):
             raise ConfigError(f"camera '{camera_type}': intrinsic {n} is not finite ({raw!r})")
         values.append(val)
-    for n, val in (("width", width), ("height", height)):
-        try:
-            ok = not isinstance(val, (bool, np.bool_)) and float(val).is_integer() and int(val) > 0
-        except (TypeError, ValueError, OverflowError):
-            ok = False
-        if not ok:
-            raise ConfigError(f"camera '{camera_type}': {n} must be a positive integer, got {val!r}")
-    return cls(np.array(values), int(width), int(height))
+    return cls(np.array(values), width, height)  # the model checks the image size
