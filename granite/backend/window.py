@@ -105,8 +105,9 @@ class _Problem:
 
 
 #: After a Gauss-Newton step raised the cost, this many further :meth:`SlidingWindow.optimize`
-#: calls use Levenberg-Marquardt (the window is in a badly conditioned stretch; GN steps taken
-#: there drift even when they lower the cost of each call).
+#: calls use Levenberg-Marquardt. Measured (about one failed step per sequence): with 0, RMS RPE
+#: 0.184 m on assets/sequences/framedrop and 0.042 m on the 640x480 spiral; with 40, 0.118 m
+#: and 0.032 m; the other sequences are unchanged.
 LM_CALLS_AFTER_FAILED_STEP = 40
 
 
