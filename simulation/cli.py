@@ -1,7 +1,8 @@
 """``granite-sim``: render Mars test-bench flights with exact ground truth.
 
     granite-sim render SCENARIO --out DIR [--width W --height H --samples N --frames A:B
-                                           --grayscale --depth-format npy|inv16 --quiet]
+                                           --grayscale --depth-format npy|inv16
+                                           --no-sensor --quiet]
     granite-sim list
     granite-sim view DATASET [--rerun FILE.rrd | --spawn] [--no-depth]
 
@@ -48,6 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write 8-bit grayscale images")
     r.add_argument("--depth-format", choices=("npy", "inv16"),
                    help="float32 .npy (exact) or inv16: 16-bit PNG of inverse depth (compact)")
+    r.add_argument("--no-sensor", action="store_true",
+                   help="ideal camera: the scenario's exposure and encoding without the sensor "
+                   "model (no noise, fixed pattern, blur, vignetting or JPEG), for comparisons")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     sub.add_parser("list", help="list the bundled scenarios")
     v = sub.add_parser(
@@ -83,7 +87,8 @@ def cmd_render(args: argparse.Namespace, argv: list[str]) -> int:
 
     scenario = with_overrides(load_scenario(args.scenario), width=args.width,
                               height=args.height, samples=args.samples,
-                              grayscale=args.grayscale, depth_format=args.depth_format)
+                              grayscale=args.grayscale, depth_format=args.depth_format,
+                              sensor=False if args.no_sensor else None)
     plan, writer, frames = prepare(scenario, args.out, args.frames,
                                    command=["granite-sim", *argv])
 

@@ -38,6 +38,16 @@ class RunPlan:
         return P[0], P[1]
 
 
+    def exposure_poses(self, i: int, exposure_time: float, k: int) -> np.ndarray:
+        """``k`` poses ``T_w_c`` evenly spread over the exposure of frame ``i`` (centred on the
+        frame time; the sensor's motion blur)."""
+        if k <= 1:
+            return self.poses[i][None]
+        half = 0.5 * exposure_time
+        t = np.clip(self.times[i] + np.linspace(-half, half, k), 0.0, self.flight.duration)
+        return self.flight.poses(t)
+
+
 def reference_xy(flight_cfg) -> tuple[float, float]:
     """The point whose terrain height the flight's altitudes refer to."""
     ref = flight_cfg.start if flight_cfg.type == "rotation" else flight_cfg.center

@@ -62,8 +62,8 @@ def render_run(plan: RunPlan, writer: RunWriter, frame_range: range,
     skipped; :meth:`RunWriter.finish` runs even when interrupted.
     """
     _load_bpy()
-    from simulation.imaging import to_8bit
     from simulation.render import Renderer, software_versions
+    from simulation.sensor import Sensor, blur_taps
     from simulation.terrain.scene import build_world
 
     s = plan.scenario
@@ -77,17 +77,21 @@ def render_run(plan: RunPlan, writer: RunWriter, frame_range: range,
     build_world(s, plan.model)
     summary["build_seconds"] = time.perf_counter() - t0
     renderer = Renderer(s)
+    sensor = Sensor(s.sensor, s.camera, s.seed, s.render.grayscale, s.render.exposure)
     try:
         iterator = progress(todo, len(todo)) if progress else todo
         for i in iterator:
             motion = plan.motion_poses(i) if s.render.motion_blur else None
             t = time.perf_counter()
             rgb, depth = renderer.render(plan.poses[i], motion)
-            rng = np.random.default_rng([s.seed, 0x5E5, i])
-            image = to_8bit(rgb, s.render.exposure, s.render.sensor_noise,
-                            s.render.grayscale, rng)
+            blur = None
+            if sensor.blurs:
+                e = s.sensor.exposure_time
+                ends = plan.exposure_poses(i, e, 2)
+                blur = plan.exposure_poses(i, e, blur_taps(depth, s.camera, plan.poses[i], ends))
+            image, info = sensor.capture(rgb, i, depth, plan.poses[i], blur)
             seconds = time.perf_counter() - t
-            writer.write_frame(i, image, depth, seconds)
+            writer.write_frame(i, image, depth, seconds, info)
             summary["rendered"] += 1
             summary["seconds"].append(seconds)
     finally:

@@ -59,13 +59,42 @@ class RenderConfig:
     denoise: bool = _f(False, doc="OpenImageDenoise (CPU); rarely needed: the lighting is noise-free")
     adaptive_threshold: float = _f(0.0, 0.0, 1.0, doc="0 disables adaptive sampling")
     max_bounces: int = _f(0, 0, 16, doc="0 = direct sun + analytic sky light (noise-free)")
-    exposure: float = _f(0.0, -10.0, 10.0, doc="stops, applied to linear radiance")
-    sensor_noise: float = _f(0.0, 0.0, 64.0, doc="std of Gaussian read noise in 8-bit DN")
-    motion_blur: bool = _f(False)
+    exposure: float = _f(0.0, -10.0, 10.0, doc="stops; used by sensor.exposure_mode = 'fixed'")
+    motion_blur: bool = _f(False, doc="Cycles motion blur (exact, twice the render time); "
+                           "the sensor's motion_blur is the cheap default")
     shutter: float = _f(0.5, 0.0, 1.0, doc="exposure time as a fraction of the frame interval")
     threads: int = _f(2, 1, 256)
     grayscale: bool = _f(False)
     depth_format: str = _f("npy", choices=("npy", "inv16"))
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Camera sensor model (:mod:`simulation.sensor`). Defaults: a 640x480 global-shutter
+    monochrome navigation camera like Ingenuity's (OmniVision OV7251 class); each value and
+    its source is documented in docs/simulation.md."""
+
+    enabled: bool = _f(True, doc="false = ideal camera: same exposure and encoding, no noise, "
+                       "fixed pattern, optics or JPEG")
+    full_well: float = _f(6300.0, 100.0, 1e7, doc="full-well capacity (electrons)")
+    read_noise: float = _f(2.1, 0.0, 1e4, doc="temporal read noise (electrons rms)")
+    dark_current: float = _f(50.0, 0.0, 1e7, doc="electrons per second")
+    dsnu: float = _f(1.0, 0.0, 1e4, doc="dark signal non-uniformity (electrons rms, fixed)")
+    prnu: float = _f(0.01, 0.0, 0.5, doc="photo-response non-uniformity (relative rms, fixed)")
+    analog_gain: float = _f(1.0, 0.01, 1000.0, doc="1 = the full well fills the ADC range")
+    adc_bits: int = _f(10, 8, 16)
+    output_bits: int = _f(8, choices=(8, 16))
+    transfer: str = _f("linear", choices=("linear", "srgb"), doc="output encoding")
+    exposure_mode: str = _f("auto", choices=("auto", "fixed"),
+                            doc="auto: mean radiance -> ae_target of the ADC range; fixed: "
+                            "radiance 2^-render.exposure fills it")
+    ae_target: float = _f(0.3, 0.001, 1.0, doc="auto exposure: mean level / ADC range")
+    exposure_time: float = _f(0.003, 0.0, 1.0, doc="seconds (motion blur, dark signal)")
+    motion_blur: bool = _f(True, doc="blur over exposure_time from depth and poses")
+    psf_sigma: float = _f(0.5, 0.0, 20.0, doc="Gaussian lens PSF (pixels, 0 = off)")
+    corner_illumination: float = _f(0.75, 0.05, 1.0, doc="vignetting: relative illumination "
+                                    "at the image corner (1 = off)")
+    jpeg_quality: int = _f(0, 0, 100, doc="JPEG compression quality (0 = off)")
 
 
 @dataclass(frozen=True)
@@ -84,10 +113,22 @@ class TerrainConfig:
     crater_min_diameter: float = _f(3.0, 0.2, 1000.0)
     crater_max_diameter: float = _f(45.0, 0.2, 5000.0)
     crater_depth_ratio: float = _f(0.15, 0.0, 0.5, doc="depth / diameter of a fresh crater")
-    rock_density: float = _f(0.3, 0.0, 10.0, doc="rocks per m^2 with D >= min")
-    rock_min_diameter: float = _f(0.1, 0.01, 20.0)
+    crater_size_exponent: float = _f(2.0, 0.5, 5.0, doc="N(>D) ~ D^-exponent (2 = the "
+                                     "equilibrium population of small Martian craters)")
+    rock_model: str = _f("golombek_rapp", choices=("golombek_rapp", "power_law"),
+                         doc="rock size-frequency model")
+    rock_abundance: float = _f(0.06, 0.005, 0.4, doc="golombek_rapp: fraction k of the area "
+                               "covered by rocks of any size (Mars landing sites 0.05-0.2)")
+    rock_density: float = _f(0.3, 0.0, 10.0, doc="power_law: rocks per m^2 with D >= min")
+    rock_min_diameter: float = _f(0.15, 0.01, 20.0, doc="smaller stones are in the texture")
     rock_max_diameter: float = _f(2.0, 0.01, 50.0)
-    rock_size_exponent: float = _f(2.2, 0.5, 6.0, doc="N(>D) ~ D^-exponent")
+    rock_size_exponent: float = _f(2.2, 0.5, 6.0, doc="power_law: N(>D) ~ D^-exponent")
+    ripple_coverage: float = _f(0.35, 0.0, 1.0, doc="fraction of the ground with aeolian ripples")
+    ripple_wavelength: float = _f(0.8, 0.02, 50.0, doc="crest spacing of the ripples (m)")
+    ripple_azimuth: float = _f(60.0, -360.0, 360.0, doc="compass direction of the wind across "
+                               "the crests (deg)")
+    ripple_strength: float = _f(2.0, 0.0, 5.0, doc="slope and albedo contrast of the ripples")
+    ripple_patch_size: float = _f(25.0, 1.0, 1000.0, doc="typical size of a ripple field (m)")
     rock_instances: bool = _f(False, doc="Blender instances instead of one merged mesh")
     texture_scales: tuple = _f((0.4, 1.8, 8.1, 36.5), 0.01, 1000.0, doc="tile sizes (m)")
     texture_contrast: float = _f(0.55, 0.0, 1.0, doc="albedo modulation by the tile")
@@ -215,6 +256,7 @@ class Scenario:
     seed: int = 0
     camera: CameraConfig = field(default_factory=CameraConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
     lighting: LightingConfig = field(default_factory=LightingConfig)
     flight: Any = field(default_factory=SpiralFlight)
@@ -232,6 +274,7 @@ class Scenario:
 _SECTIONS = {
     "camera": CameraConfig,
     "render": RenderConfig,
+    "sensor": SensorConfig,
     "terrain": TerrainConfig,
     "lighting": LightingConfig,
     "frame_drops": FrameDropsConfig,
@@ -316,6 +359,15 @@ def _cross_checks(s: Scenario, err) -> None:
             raise err(f"flight.{lo} must not exceed flight.{hi}")
     if len(t.texture_scales) > 6:
         raise err("terrain.texture_scales takes at most 6 tile sizes")
+    sn = s.sensor
+    if sn.enabled and sn.motion_blur and sn.exposure_time > 0 and s.render.motion_blur:
+        raise err("sensor.motion_blur and render.motion_blur are both on (the image would be "
+                  "blurred twice); switch one off")
+    if sn.exposure_time >= 1.0 / c.rate_hz:
+        raise err(f"sensor.exposure_time ({sn.exposure_time:g} s) must be shorter than the "
+                  f"frame interval (1 / camera.rate_hz = {1.0 / c.rate_hz:g} s)")
+    if sn.jpeg_quality > 0 and sn.output_bits != 8:
+        raise err("sensor.jpeg_quality needs sensor.output_bits = 8")
     if f.type == "rotation" and f.rotation_duration >= f.duration:
         raise err("flight.rotation_duration must be shorter than flight.duration")
 
@@ -383,7 +435,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
 
 def with_overrides(s: Scenario, width: int | None = None, height: int | None = None,
                    samples: int | None = None, grayscale: bool | None = None,
-                   depth_format: str | None = None) -> Scenario:
+                   depth_format: str | None = None, sensor: bool | None = None) -> Scenario:
     """A copy with command-line overrides. A new image size rescales the intrinsics (same
     field of view: fx, cx scale with the width, fy, cy with the height)."""
     cam, ren = s.camera, s.render
@@ -408,7 +460,8 @@ def with_overrides(s: Scenario, width: int | None = None, height: int | None = N
         changes["depth_format"] = _check_value(
             depth_format, str, {"choices": ("npy", "inv16")}, "--depth-format", err)
     ren = dataclasses.replace(ren, **changes)
-    return dataclasses.replace(s, camera=cam, render=ren)
+    sen = s.sensor if sensor is None else dataclasses.replace(s.sensor, enabled=bool(sensor))
+    return dataclasses.replace(s, camera=cam, render=ren, sensor=sen)
 
 
 def scenario_to_dict(s: Scenario) -> dict:

@@ -41,8 +41,9 @@ from granite.io import (
 from granite.trajectory import Trajectory
 from simulation.depth import DEPTH_EXTENSIONS, write_depth
 from simulation.scenario import scenario_to_dict
+from simulation.sensor import describe as describe_sensor
 
-MANIFEST_VERSION = 1
+MANIFEST_VERSION = 2  # 2: sensor model (manifest "sensor", per-frame "sensor")
 
 
 def calibration_of(cam) -> Calibration:
@@ -88,6 +89,7 @@ class RunWriter:
         self.fingerprint = fingerprint(s)
         self.command = command or []
         self.render_seconds: dict[int, float] = {}
+        self.sensor_info: dict[int, dict] = {}
         self.software: dict[str, str] = {}
         self._check_existing()
 
@@ -120,6 +122,8 @@ class RunWriter:
             i, sec = frame.get("index"), frame.get("render_seconds")
             if isinstance(i, int) and sec is not None and 0 <= i < len(self.plan.times):
                 self.render_seconds[i] = float(sec)
+                if isinstance(frame.get("sensor"), dict):
+                    self.sensor_info[i] = frame["sensor"]
 
     # ------------------------------------------------------------------ writing
     def write_static(self, software: dict[str, str]) -> None:
@@ -144,8 +148,10 @@ class RunWriter:
             atomic_write_text(self.out / "scenario.toml", Path(s.source).read_text(encoding="utf-8"))
         self.write_manifest()
 
-    def write_frame(self, i: int, image: np.ndarray, depth: np.ndarray, seconds: float) -> None:
-        """Depth first, image last (the image completes the frame); atomic files."""
+    def write_frame(self, i: int, image: np.ndarray, depth: np.ndarray, seconds: float,
+                    sensor_info: dict | None = None) -> None:
+        """Depth first, image last (the image completes the frame); atomic files.
+        ``sensor_info`` (exposure scale, blur taps) goes into the manifest."""
         write_depth(self.depth_path(i), depth, self.scenario.render.depth_format)
         if not self.plan.dropped[i]:
             arr = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
@@ -153,6 +159,8 @@ class RunWriter:
                 if not cv2.imwrite(str(tmp), arr, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
                     raise OSError(f"cannot write {self.image_path(i)}")
         self.render_seconds[i] = float(seconds)
+        if sensor_info:
+            self.sensor_info[i] = {k: float(v) for k, v in sensor_info.items()}
 
     def finish(self) -> None:
         """Lists of present images / depth maps and the manifest (safe to call repeatedly)."""
@@ -173,6 +181,7 @@ class RunWriter:
             "timestamp_ns": int(plan.timestamps_ns[i]),
             "dropped": bool(plan.dropped[i]),
             "render_seconds": self.render_seconds.get(i),
+            **({"sensor": self.sensor_info[i]} if i in self.sensor_info else {}),
         } for i in range(len(plan.times))]
         done = [v for v in self.render_seconds.values()]
         manifest = {
@@ -191,6 +200,7 @@ class RunWriter:
             "depth": {"format": s.render.depth_format, "folder": "mav0/depth0/data",
                       "kind": "planar camera z in metres"},
             "mean_render_seconds": float(np.mean(done)) if done else None,
+            "sensor": describe_sensor(s.sensor),
             "config": scenario_to_dict(s),
             "frames": frames,
         }

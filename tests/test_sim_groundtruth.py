@@ -5,6 +5,11 @@ with T_w_c(j), must land on the same image content: 9x9 patches warped point by 
 (each pixel with its own depth) correlate with ZNCC > 0.9. Pairs are chosen with real
 parallax (the translation moves the points by >= 2 px beyond what the rotation explains),
 so that a wrong depth would show; a pose perturbed by one degree must fail the same check.
+
+The images carry the camera sensor model (shot and read noise, a different motion blur per
+frame): on the fast, low ``aggressive`` flight, where the blur is longest, the bounds are
+ZNCC > 0.9 for 85 % of the patches and a median of 0.93 (0.9 and 0.95 on clean renders);
+the one-degree pose error still falls far below them.
 """
 
 from __future__ import annotations
@@ -141,8 +146,8 @@ def test_reprojected_patches_match(root: Path):
         assert len(scores) >= 50, f"{root.name} {i}->{j}: only {len(scores)} patches visible"
         assert parallax >= MIN_PARALLAX_PX
         good = float(np.mean(scores > 0.9))
-        assert good >= 0.9, f"{root.name} {i}->{j}: {good:.0%} of patches with ZNCC > 0.9"
-        assert np.median(scores) > 0.95
+        assert good >= 0.85, f"{root.name} {i}->{j}: {good:.0%} of patches with ZNCC > 0.9"
+        assert np.median(scores) > 0.93
 
 
 @pytest.mark.skipif(not SEQUENCES, reason="no committed sequences in assets/sequences")
@@ -196,4 +201,4 @@ def test_wide_baseline_patches_match(root: Path):
     if parallax < 10.0:
         pytest.skip(f"only {parallax:.1f} px of parallax")
     assert len(scores) >= 50
-    assert np.median(scores) > 0.95 and np.mean(scores > 0.9) >= 0.8
+    assert np.median(scores) > 0.93 and np.mean(scores > 0.9) >= 0.75

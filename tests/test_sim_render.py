@@ -112,7 +112,7 @@ def test_tiny_render_through_the_cli(tmp_path, capsys):
     toml.write_text(
         'name = "tiny"\nseed = 5\n[camera]\nwidth = 64\nheight = 48\nfx = 48.0\nfy = 48.0\n'
         'cx = 31.5\ncy = 23.5\n[terrain]\nextent = 16.0\nresolution = 0.5\nfar_extent = 40.0\n'
-        'rock_density = 0.0\n[flight]\ntype = "hover"\naltitude = 3.0\nduration = 0.1\n'
+        'rock_model = "power_law"\nrock_density = 0.0\n[flight]\ntype = "hover"\naltitude = 3.0\nduration = 0.1\n'
         'pitch = 80.0\n')
     out = tmp_path / "run"
     assert cli.main(["render", str(toml), "--out", str(out), "--quiet"]) == 0
@@ -156,3 +156,44 @@ def test_tiny_render_through_the_cli(tmp_path, capsys):
     assert cli.main(["render", str(toml), "--out", str(out), "--quiet"]) == 0
     assert "rendered 1 frames, skipped 2" in capsys.readouterr().err
     assert first.read_bytes() == original
+
+
+def test_sensor_noise_in_a_render_is_the_models(tmp_path, capsys):
+    """Render the same frames with the sensor model and with --no-sensor (ideal camera): the
+    variance of the difference grows linearly with the clean signal at the configured gain."""
+    from simulation import cli
+    from simulation.scenario import load_scenario
+    from simulation.sensor import output_gain
+
+    toml = tmp_path / "noise.toml"
+    toml.write_text(
+        'name = "noise"\nseed = 8\n[camera]\nwidth = 160\nheight = 120\nfx = 120.0\nfy = 120.0\n'
+        'cx = 79.5\ncy = 59.5\n[render]\ngrayscale = true\n[terrain]\nextent = 16.0\n'
+        'resolution = 0.5\nfar_extent = 40.0\n[sensor]\npsf_sigma = 0.0\n'
+        'corner_illumination = 1.0\nprnu = 0.0\ndsnu = 0.0\nmotion_blur = false\n'
+        'full_well = 3000.0\n[flight]\ntype = "hover"\naltitude = 3.0\nduration = 0.1\n'
+        'pitch = 60.0\n')
+    for name, extra in (("with", []), ("without", ["--no-sensor"])):
+        assert cli.main(["render", str(toml), "--out", str(tmp_path / name), "--quiet",
+                         *extra]) == 0
+    capsys.readouterr()
+    means, variances = [], []
+    names = sorted((tmp_path / "with" / "mav0" / "cam0" / "data").glob("*.png"))
+    assert len(names) == 3
+    for p in names:
+        noisy = cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.float64)
+        clean = cv2.imread(str(tmp_path / "without" / "mav0" / "cam0" / "data" / p.name),
+                           cv2.IMREAD_UNCHANGED).astype(np.float64)
+        diff = noisy - clean
+        for lo in range(8, 240, 16):  # clean-signal bins
+            sel = (clean >= lo) & (clean < lo + 16)
+            if sel.sum() > 200:
+                means.append(clean[sel].mean())
+                variances.append(diff[sel].var())
+    assert len(means) >= 4, "too few signal levels in the render"
+    slope, _ = np.polyfit(means, variances, 1)
+    gain = output_gain(load_scenario(toml).sensor)
+    assert slope == pytest.approx(gain, rel=0.2)
+    manifest = json.loads((tmp_path / "with" / "manifest.json").read_text())
+    assert manifest["sensor"]["enabled"] and manifest["sensor"]["parameters"]["full_well"] == 3000.0
+    assert json.loads((tmp_path / "without" / "manifest.json").read_text())["sensor"]["enabled"] is False

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from simulation.depth import read_depth, write_depth
-from simulation.imaging import linear_to_srgb, to_8bit
+from simulation.imaging import linear_to_srgb
 from simulation.scenario import TerrainConfig
 from simulation.terrain.appearance import rotated_tile, tile_uv
 from simulation.terrain.heightfield import Heightfield, crater_profile, grid_axis
@@ -19,7 +19,8 @@ from simulation.terrain.rocks import N_PROTOTYPES
 from simulation.terrain.textures import periodic_gradient, make_surface_texture
 
 SMALL = TerrainConfig(extent=64.0, resolution=0.5, far_extent=200.0, crater_density=30.0,
-                      crater_max_diameter=20.0, rock_density=0.2)
+                      crater_max_diameter=20.0, rock_density=0.2, rock_model="power_law",
+                      rock_min_diameter=0.1)
 
 
 @pytest.fixture(scope="module")
@@ -172,21 +173,13 @@ def test_depth_files_round_trip(tmp_path):
     np.testing.assert_allclose(1 / back[fin], 1 / depth[fin], atol=0.51 / 32767.5)
 
 
-def test_to_8bit_srgb_gray_and_noise():
-    lin = np.full((4, 4, 3), 0.2)
-    img = to_8bit(lin)
-    assert img.dtype == np.uint8 and img.shape == (4, 4, 3)
-    assert np.all(img == round(255 * (1.055 * 0.2 ** (1 / 2.4) - 0.055)))
-    assert linear_to_srgb(np.array([0.001]))[0] == pytest.approx(0.01292)
-    assert to_8bit(lin, exposure=1.0)[0, 0, 0] == round(255 * float(linear_to_srgb(np.array([0.4]))[0]))
-    gray = to_8bit(np.dstack([np.full((2, 2), 1.0), np.zeros((2, 2)), np.zeros((2, 2))]), grayscale=True)
-    assert gray.shape == (2, 2) and gray[0, 0] == round(0.299 * 255)
-    a = to_8bit(lin, noise_std=3.0, rng=np.random.default_rng(1))
-    b = to_8bit(lin, noise_std=3.0, rng=np.random.default_rng(1))
-    np.testing.assert_array_equal(a, b)
-    assert a.std() > 1.0
-    with pytest.raises(ValueError):
-        to_8bit(lin, noise_std=1.0)
+def test_srgb_transfer_function():
+    x = np.array([0.0, 0.002, 0.0031308, 0.2, 1.0, 1.5])
+    y = linear_to_srgb(x)
+    assert y[1] == pytest.approx(12.92 * 0.002)
+    assert y[3] == pytest.approx(1.055 * 0.2 ** (1 / 2.4) - 0.055)
+    assert y[4] == pytest.approx(1.0) and y[5] == pytest.approx(1.0)  # clipped
+    assert np.all(np.diff(y[:5]) > 0)
 
 
 def test_config_is_hashable_for_the_model_cache():

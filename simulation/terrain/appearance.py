@@ -36,11 +36,48 @@ def tile_uv(xy: np.ndarray, scale: float, k: int) -> np.ndarray:
 def rotated_tile(tex: np.ndarray, k: int) -> np.ndarray:
     """Copy of the tile (channels: du-slope, dv-slope, albedo, height) for layer ``k`` with
     the slopes expressed in world x, y."""
-    angle, _ = layer_transform(k)
+    return tile_in_world(tex, layer_transform(k)[0])
+
+
+def tile_in_world(tex: np.ndarray, angle: float) -> np.ndarray:
+    """Copy of a tile mapped by u = R(angle) p / s with its slopes expressed in world x, y."""
     out = tex.copy()
-    g = tex[..., :2] @ _rot(angle)  # row vector g @ R == (R^T g^T)^T
-    out[..., :2] = g
+    out[..., :2] = tex[..., :2] @ _rot(angle)  # row vector g @ R == (R^T g^T)^T
     return out
+
+
+def ripple_angle(azimuth_deg: float) -> float:
+    """Tile rotation that puts the ripple tile's u axis (across the crests) along the compass
+    ``azimuth`` (clockwise from north = +y): u = R p must grow along (sin az, cos az)."""
+    az = np.deg2rad(azimuth_deg)
+    return -float(np.arctan2(np.cos(az), np.sin(az)))
+
+
+def ripple_uv(xy: np.ndarray, cfg) -> np.ndarray:
+    """(N, 2) float32 coordinates of the ripple tile (RIPPLES_PER_TILE crests per tile)."""
+    from simulation.terrain.textures import RIPPLES_PER_TILE
+
+    tile = cfg.ripple_wavelength * RIPPLES_PER_TILE
+    return (xy @ _rot(ripple_angle(cfg.ripple_azimuth)).T / tile).astype(np.float32)
+
+
+def ripple_mask(cfg, seed: int, xy: np.ndarray) -> np.ndarray:
+    """(N,) float32 weight in [0, 1] of the ripples: fields of about ``ripple_patch_size``
+    covering ``ripple_coverage`` of the ground (a threshold on seeded fbm at its quantile,
+    with soft edges over a tenth of the patch size)."""
+    c = cfg.ripple_coverage
+    if c <= 0.0 or cfg.ripple_strength <= 0.0 or len(xy) == 0:
+        return np.zeros(len(xy), np.float32)
+    if c >= 1.0:
+        return np.ones(len(xy), np.float32)
+    L = cfg.ripple_patch_size
+    f = fbm(xy[:, 0] / L, xy[:, 1] / L, seed + 29, octaves=3)
+    # quantile of the field over a seeded sample of the detailed square (stable, cheap)
+    rng = np.random.default_rng([seed, 0x819])
+    probe = rng.uniform(-cfg.extent / 2, cfg.extent / 2, (4096, 2))
+    thr = np.quantile(fbm(probe[:, 0] / L, probe[:, 1] / L, seed + 29, octaves=3), 1.0 - c)
+    edge = 0.1 * np.std(f) + 1e-9
+    return np.clip((f - thr) / edge + 0.5, 0.0, 1.0).astype(np.float32)
 
 
 def terrain_base_color(cfg, seed: int, xy: np.ndarray) -> np.ndarray:

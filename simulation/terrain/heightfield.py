@@ -49,12 +49,37 @@ def power_law_sizes(rng: np.random.Generator, n: int, d_min: float, d_max: float
     return (a - u * (a - b)) ** (-1.0 / exponent)
 
 
+def golombek_rapp_q(k: float) -> float:
+    """Decay constant q(k) = 1.79 + 0.152 / k (1/m) of the Golombek-Rapp model."""
+    return 1.79 + 0.152 / k
+
+
+def golombek_rapp_density(d: np.ndarray, k: float) -> np.ndarray:
+    """Rocks per m^2 per metre of diameter of the Golombek-Rapp (1997) rock model: the
+    cumulative fraction of the area covered by rocks of diameter >= D is F(D) = k exp(-q D),
+    so n(D) = -F'(D) / (pi D^2 / 4) = k q exp(-q D) 4 / (pi D^2)."""
+    q = golombek_rapp_q(k)
+    return k * q * np.exp(-q * d) * 4.0 / (np.pi * d * d)
+
+
+def golombek_rapp_sizes(rng: np.random.Generator, area: float, d_min: float, d_max: float,
+                        k: float) -> np.ndarray:
+    """Seeded rock diameters on ``area`` m^2 between ``d_min`` and ``d_max`` (Poisson count,
+    inverse-CDF sampling of :func:`golombek_rapp_density` on a fine log grid)."""
+    grid = np.geomspace(d_min, d_max, 2049)
+    dens = golombek_rapp_density(grid, k)
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (dens[1:] + dens[:-1]) * np.diff(grid))])
+    n = int(rng.poisson(cdf[-1] * area))
+    return np.interp(rng.random(n) * cdf[-1], cdf, grid)
+
+
 def make_craters(cfg, seed: int) -> Craters:
     """Seeded crater population over the detailed square (``crater_density`` per hectare)."""
     rng = np.random.default_rng([seed, 0xC2A])
     area_ha = cfg.extent**2 / 1e4
     n = rng.poisson(cfg.crater_density * area_ha)
-    d = power_law_sizes(rng, n, cfg.crater_min_diameter, cfg.crater_max_diameter, 2.0)
+    d = power_law_sizes(rng, n, cfg.crater_min_diameter, cfg.crater_max_diameter,
+                        cfg.crater_size_exponent)
     centers = rng.uniform(-cfg.extent / 2, cfg.extent / 2, (n, 2))
     fresh = rng.uniform(0.35, 1.0, n)  # degradation: old craters are shallower
     depths = cfg.crater_depth_ratio * d * fresh

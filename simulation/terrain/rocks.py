@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from simulation.terrain.heightfield import Heightfield, power_law_sizes
+from simulation.terrain.heightfield import Heightfield, golombek_rapp_sizes, power_law_sizes
 from simulation.terrain.noise import perlin
 
 N_PROTOTYPES = 8  #: per level of detail
@@ -81,14 +81,20 @@ class Rocks:
 
 def make_rocks(cfg, hf: Heightfield, seed: int,
                prototypes: list[tuple[np.ndarray, np.ndarray]]) -> Rocks:
-    """Seeded rock field over the detailed square: ``rock_density`` rocks per m^2 with
-    power-law diameters; 30 % are ejecta near crater rims. ``prototypes`` holds
+    """Seeded rock field over the detailed square: diameters from the Golombek-Rapp model
+    (``rock_abundance``) or a power law (``rock_density`` per m^2); 30 % are ejecta near
+    crater rims. ``prototypes`` holds
     ``N_PROTOTYPES`` detailed ones followed by as many coarse ones (for small rocks)."""
     rng = np.random.default_rng([seed, 0x20C])
     half = cfg.extent / 2
-    n = int(rng.poisson(cfg.rock_density * cfg.extent**2))
-    d = power_law_sizes(rng, n, cfg.rock_min_diameter, cfg.rock_max_diameter,
-                        cfg.rock_size_exponent)
+    if cfg.rock_model == "golombek_rapp":
+        d = golombek_rapp_sizes(rng, cfg.extent**2, cfg.rock_min_diameter,
+                                cfg.rock_max_diameter, cfg.rock_abundance)
+        n = len(d)
+    else:
+        n = int(rng.poisson(cfg.rock_density * cfg.extent**2))
+        d = power_law_sizes(rng, n, cfg.rock_min_diameter, cfg.rock_max_diameter,
+                            cfg.rock_size_exponent)
     xy = rng.uniform(-half, half, (n, 2))
     craters = hf.craters
     if len(craters.diameters) and n:

@@ -13,14 +13,24 @@ import mathutils
 import numpy as np
 
 from simulation.terrain.appearance import (
+    ripple_angle,
+    ripple_mask,
+    ripple_uv,
     rock_base_color,
     rock_projection,
     rotated_tile,
     terrain_base_color,
+    tile_in_world,
     tile_uv,
 )
 from simulation.terrain.model import TerrainModel, make_terrain_model
-from simulation.terrain.textures import FINEST_CYCLES, make_surface_texture
+from simulation.terrain.textures import (
+    FINEST_CYCLES,
+    RIPPLE_FINEST_CYCLES,
+    RIPPLES_PER_TILE,
+    make_ripple_texture,
+    make_surface_texture,
+)
 
 
 @dataclass
@@ -50,31 +60,63 @@ def _mesh(name: str, verts: np.ndarray, tris: np.ndarray, smooth: bool):
 SLOPE_RANGE = 4.0  #: tile slopes (unit RMS) are stored in 8 bits as 0.5 + slope / (2 * range)
 
 
-def _tile_images(seed: int, n_layers: int) -> list:
-    """One 8-bit image per tile layer: the same tile with its slopes pre-rotated per layer
-    (8-bit images keep the texture cache small: a float image renders ~30 % slower)."""
+def _tile_image(name: str, data: np.ndarray):
+    """8-bit Blender image of a tile whose slopes are already in world x, y (8-bit images
+    keep the texture cache small: a float image renders ~30 % slower)."""
+    data = data.copy()
+    size = data.shape[0]
+    data[..., :2] = np.clip(0.5 + data[..., :2] / (2.0 * SLOPE_RANGE), 0.0, 1.0)
+    img = bpy.data.images.new(name, size, size, alpha=True, float_buffer=False)
+    img.colorspace_settings.name = "Non-Color"
+    img.alpha_mode = "CHANNEL_PACKED"
+    # Blender stores rows bottom-up: array row r is v = (r + 0.5) / size, as assumed.
+    img.pixels.foreach_set(np.ascontiguousarray(data, dtype=np.float32).ravel())
+    img.pack()
+    return img
+
+
+@dataclass(frozen=True)
+class _Layer:
+    """One texture layer of the material: its image, the vertex attribute holding its tile
+    coordinates, its finest wavelength (m), an optional weight attribute and a contrast."""
+
+    image: object
+    uv: str
+    finest_wavelength: float
+    mask: str | None = None
+    strength: float = 1.0
+
+
+def _layers(cfg, seed: int) -> list[_Layer]:
+    """The regolith tile at every ``texture_scales`` size (slopes pre-rotated per layer),
+    plus the aeolian-ripple tile when ripples are on."""
     tex = make_surface_texture(seed)
-    size = tex.shape[0]
-    images = []
-    for k in range(n_layers):
-        data = rotated_tile(tex, k)
-        data[..., :2] = np.clip(0.5 + data[..., :2] / (2.0 * SLOPE_RANGE), 0.0, 1.0)
-        img = bpy.data.images.new(f"regolith_tile_{k}", size, size, alpha=True,
-                                  float_buffer=False)
-        img.colorspace_settings.name = "Non-Color"
-        img.alpha_mode = "CHANNEL_PACKED"
-        # Blender stores rows bottom-up: array row r is v = (r + 0.5) / size, as assumed.
-        img.pixels.foreach_set(np.ascontiguousarray(data, dtype=np.float32).ravel())
-        img.pack()
-        images.append(img)
-    return images
+    layers = [_Layer(_tile_image(f"regolith_tile_{k}", rotated_tile(tex, k)), f"uv{k}",
+                     scale / FINEST_CYCLES) for k, scale in enumerate(cfg.texture_scales)]
+    if _has_ripples(cfg):
+        tile = tile_in_world(make_ripple_texture(seed), ripple_angle(cfg.ripple_azimuth))
+        layers.append(_Layer(_tile_image("ripple_tile", tile), "uvr",
+                             cfg.ripple_wavelength * RIPPLES_PER_TILE / RIPPLE_FINEST_CYCLES,
+                             mask="ripple", strength=cfg.ripple_strength))
+    return layers
 
 
-def _set_attributes(mesh, uvs: list[np.ndarray], base: np.ndarray) -> None:
-    """Per-vertex tile coordinates ``uv<k>`` (FLOAT2) and linear base colour ``base``."""
+def _has_ripples(cfg) -> bool:
+    return cfg.ripple_coverage > 0 and cfg.ripple_strength > 0
+
+
+def _set_attributes(mesh, uvs: list[np.ndarray], base: np.ndarray,
+                    ripples: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    """Per-vertex tile coordinates ``uv<k>`` (FLOAT2), linear base colour ``base`` and,
+    with ``ripples`` = (coordinates, weight), the ripple layer's ``uvr`` and ``ripple``."""
     for k, uv in enumerate(uvs):
         attr = mesh.attributes.new(f"uv{k}", "FLOAT2", "POINT")
         attr.data.foreach_set("vector", np.ascontiguousarray(uv, dtype=np.float32).ravel())
+    if ripples is not None:
+        attr = mesh.attributes.new("uvr", "FLOAT2", "POINT")
+        attr.data.foreach_set("vector", np.ascontiguousarray(ripples[0], np.float32).ravel())
+        attr = mesh.attributes.new("ripple", "FLOAT", "POINT")
+        attr.data.foreach_set("value", np.ascontiguousarray(ripples[1], np.float32).ravel())
     rgba = np.ones((len(base), 4), dtype=np.float32)
     rgba[:, :3] = base
     attr = mesh.attributes.new("base", "FLOAT_COLOR", "POINT")
@@ -108,10 +150,12 @@ class _Nodes:
         self.tree.links.new(out, inp)
 
 
-def _surface_material(cfg, images: list, sky_radiance, focal_px: float) -> object:
+def _surface_material(cfg, layers: list[_Layer], sky_radiance, focal_px: float) -> object:
     """The one material of terrain and rocks (both carry the same vertex attributes).
 
-    Tile layer k (tile size s_k) holds no detail finer than s_k / FINEST_CYCLES; it is faded
+    Tile layer k (tile size s_k) holds no detail finer than s_k / FINEST_CYCLES (the ripple
+    layer: its own finest wavelength; it is also weighted by the per-vertex ripple mask and
+    its deviation from the mean scaled by ``ripple_strength``); it is faded
     to its mean (what a pixel integrating the texture sees) as that wavelength shrinks from 2
     to 1 pixel footprints (footprint along the view = camera distance / (``focal_px`` x
     cos(incidence))), like an anisotropic mip-map: without
@@ -135,23 +179,37 @@ def _surface_material(cfg, images: list, sky_radiance, focal_px: float) -> objec
     n.link(cos_i.outputs["Value"], inv_dist.inputs[0])
     n.link(n.new("ShaderNodeLightPath").outputs["Ray Length"], inv_dist.inputs[1])
     acc = None
-    for k, (img, scale) in enumerate(zip(images, cfg.texture_scales)):
-        uv = n.new("ShaderNodeAttribute", attribute_type="GEOMETRY", attribute_name=f"uv{k}")
-        tex = n.new("ShaderNodeTexImage", image=img, interpolation="Linear",
+    for layer in layers:
+        uv = n.new("ShaderNodeAttribute", attribute_type="GEOMETRY", attribute_name=layer.uv)
+        tex = n.new("ShaderNodeTexImage", image=layer.image, interpolation="Linear",
                     extension="REPEAT", projection="FLAT")
         n.link(uv.outputs["Vector"], tex.inputs["Vector"])
         # w = clamp(finest wavelength in footprints - 1) = clamp(a cos / distance - 1)
-        a = scale / FINEST_CYCLES * focal_px
+        a = layer.finest_wavelength * focal_px
         w = n.new("ShaderNodeMath", operation="MULTIPLY_ADD", use_clamp=True)
         n.link(inv_dist.outputs[0], w.inputs[0])
         w.inputs[1].default_value = a
         w.inputs[2].default_value = -1.0
+        weight = w.outputs[0]
+        if layer.mask is not None:
+            mask = n.new("ShaderNodeAttribute", attribute_type="GEOMETRY",
+                         attribute_name=layer.mask)
+            masked = n.new("ShaderNodeMath", operation="MULTIPLY")
+            n.link(weight, masked.inputs[0])
+            n.link(mask.outputs["Fac"], masked.inputs[1])
+            weight = masked.outputs[0]
         fade = n.new("ShaderNodeMix", data_type="VECTOR", factor_mode="UNIFORM")
-        n.link(w.outputs[0], _socket(fade.inputs, "Factor_Float"))
+        n.link(weight, _socket(fade.inputs, "Factor_Float"))
         # (no slope, no slope, mean albedo) = what a pixel integrating the tile sees
         _socket(fade.inputs, "A_Vector").default_value = (0.5, 0.5, 0.5)
         n.link(tex.outputs["Color"], _socket(fade.inputs, "B_Vector"))
         out_vec = _socket(fade.outputs, "Result_Vector")
+        if layer.strength != 1.0:  # mean + strength (value - mean)
+            st = n.new("ShaderNodeVectorMath", operation="MULTIPLY_ADD")
+            n.link(out_vec, st.inputs[0])
+            st.inputs[1].default_value = (layer.strength,) * 3
+            st.inputs[2].default_value = (0.5 * (1.0 - layer.strength),) * 3
+            out_vec = st.outputs["Vector"]
         if acc is None:
             acc = out_vec  # (x-slope, y-slope, albedo)
         else:
@@ -159,7 +217,7 @@ def _surface_material(cfg, images: list, sky_radiance, focal_px: float) -> objec
             n.link(acc, add.inputs[0])
             n.link(out_vec, add.inputs[1])
             acc = add.outputs["Vector"]
-    L = len(images)
+    L = len(layers)
     # slope sum = 2 R (acc - L / 2) with R = SLOPE_RANGE; N' = N + k (slope sum) =
     # acc * 2 R k + (N - L R k)
     k_tilt = -0.3 * cfg.bump_strength / np.sqrt(L)
@@ -269,6 +327,13 @@ def merged_rocks(protos, rocks) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.concatenate(verts), np.concatenate(tris), np.concatenate(owner)
 
 
+def _no_ripples(cfg, xy: np.ndarray):
+    """Ripple attributes of rock vertices: coordinates (unused) and weight 0."""
+    if not _has_ripples(cfg):
+        return None
+    return np.zeros((len(xy), 2), np.float32), np.zeros(len(xy), np.float32)
+
+
 def _rocks(coll, cfg, protos, rocks, material, seed: int) -> None:
     rng = np.random.default_rng([seed, 0x2C0])
     colors = rock_base_color(cfg, rng, max(len(rocks), 1))
@@ -280,7 +345,7 @@ def _rocks(coll, cfg, protos, rocks, material, seed: int) -> None:
         mesh = _mesh("rocks", verts, tris, smooth=False)
         xy = rock_projection(verts)
         _set_attributes(mesh, [tile_uv(xy, s, k) for k, s in enumerate(cfg.texture_scales)],
-                        colors[owner])
+                        colors[owner], _no_ripples(cfg, xy))
         mesh.materials.append(material)
         coll.objects.link(bpy.data.objects.new("rocks", mesh))
         return
@@ -292,7 +357,8 @@ def _rocks(coll, cfg, protos, rocks, material, seed: int) -> None:
         xy = rock_projection(v)
         _set_attributes(mesh, [tile_uv(xy, 0.5 * s, j) for j, s in
                                enumerate(cfg.texture_scales[:L])],
-                        np.repeat(colors[k % len(colors)][None], len(v), axis=0))
+                        np.repeat(colors[k % len(colors)][None], len(v), axis=0),
+                        _no_ripples(cfg, xy))
         mesh.materials.append(material)
         meshes.append(mesh)
     for i in range(len(rocks)):
@@ -313,13 +379,13 @@ def build_world(scenario, model: TerrainModel | None = None) -> World:
     scene = bpy.context.scene
     light = scenario.lighting
     sky_radiance = tuple(c * light.sky_strength for c in light.sky_color)
-    material = _surface_material(cfg, _tile_images(seed, len(cfg.texture_scales)), sky_radiance,
-                                 scenario.camera.fx)
+    material = _surface_material(cfg, _layers(cfg, seed), sky_radiance, scenario.camera.fx)
     verts, tris = model.heightfield.triangles()
     mesh = _mesh("terrain", verts, tris, smooth=True)
     xy = verts[:, :2]
+    ripples = (ripple_uv(xy, cfg), ripple_mask(cfg, seed, xy)) if _has_ripples(cfg) else None
     _set_attributes(mesh, [tile_uv(xy, s, k) for k, s in enumerate(cfg.texture_scales)],
-                    terrain_base_color(cfg, seed, xy))
+                    terrain_base_color(cfg, seed, xy), ripples)
     mesh.materials.append(material)
     scene.collection.objects.link(bpy.data.objects.new("terrain", mesh))
     rock_coll = bpy.data.collections.new("rocks")

@@ -88,3 +88,45 @@ def make_surface_texture(seed: int, size: int = 256) -> np.ndarray:
     out[..., 2] = np.clip(albedo, 0.0, 1.0)
     out[..., 3] = (height - height.min()) / max(np.ptp(height), 1e-9)
     return out
+
+
+#: Ripple crests per ripple tile (the tile is RIPPLES_PER_TILE wavelengths wide).
+RIPPLES_PER_TILE = 8
+#: Finest detail of the ripple tile, in cycles per tile (grain on the ripples).
+RIPPLE_FINEST_CYCLES = 48.0
+
+
+def make_ripple_texture(seed: int, size: int = 256) -> np.ndarray:
+    """Tiling aeolian-ripple tile, channels as :func:`make_surface_texture`.
+
+    Crests run along v (rows vary along u = the wind direction): an asymmetric profile (gentle
+    stoss slope, steeper lee slope) of phase 2 pi RIPPLES_PER_TILE u, the crest lines bent,
+    forked and broken by a tileable noise phase so that neighbouring crests are alike but not
+    identical, plus fine grain; brighter coarse grains on the crests (albedo follows height).
+    """
+    rng = np.random.default_rng([seed, 0x819])
+    u = (np.arange(size) + 0.5) / size
+    uu, vv = np.meshgrid(u, u)
+    bend = tileable_texture(size, 2.2, rng, min_period=8.0, min_cycles=1.0) - 0.5
+    wiggle = tileable_texture(size, 1.6, rng, min_period=4.0, min_cycles=4.0) - 0.5
+    phase = 2.0 * np.pi * (RIPPLES_PER_TILE * uu + 1.2 * bend + 0.35 * wiggle)
+    profile = np.sin(phase) + 0.35 * np.sin(2.0 * phase) + 0.08 * np.sin(3.0 * phase)
+    strength = 0.55 + 0.45 * tileable_texture(size, 2.0, rng, min_period=8.0, min_cycles=2.0)
+    height = profile * strength
+    grain = tileable_texture(size, 1.0, rng, min_period=2.0, min_cycles=COARSEST_CYCLES)
+    k = np.fft.fftfreq(size) * size
+    kk = np.sqrt(k[:, None] ** 2 + k[None, :] ** 2)
+    low = np.exp(-0.5 * (kk / (0.75 * RIPPLE_FINEST_CYCLES)) ** 4)
+    band = lambda img: np.real(np.fft.ifft2(np.fft.fft2(img) * low))  # noqa: E731
+    height = band(height + 0.25 * (grain - 0.5))
+    albedo = band(0.6 * height / np.max(np.abs(height)) + 0.5 * (grain - 0.5))
+    albedo = albedo / max(np.percentile(np.abs(albedo - albedo.mean()), 99.5), 1e-9)
+    albedo = 0.5 + 0.5 * (albedo - albedo.mean())
+    gu, gv = periodic_gradient(height)
+    rms = np.sqrt(np.mean(gu**2 + gv**2) / 2.0)
+    out = np.empty((size, size, 4), dtype=np.float32)
+    out[..., 0] = gu / rms
+    out[..., 1] = gv / rms
+    out[..., 2] = np.clip(albedo, 0.0, 1.0)
+    out[..., 3] = (height - height.min()) / max(np.ptp(height), 1e-9)
+    return out
