@@ -46,10 +46,13 @@ def test_run_cli_writes_outputs_and_no_nan(flight_dataset, tmp_path):
     out = tmp_path / "run"
     assert main(["run", str(flight_dataset), "--out", str(out), "--quiet", "--max-frames", "40"]) == 0
     rows = np.loadtxt(out / "trajectory.tum")
-    assert rows.shape == (40, 9) and np.all(np.isfinite(rows))
+    assert rows.shape == (40, 8) and np.all(np.isfinite(rows))  # plain TUM
+    submaps = np.loadtxt(out / "submaps.csv", delimiter=",", skiprows=1)
+    assert np.allclose(submaps[:, 0], rows[:, 0]) and np.array_equal(submaps[:, 1], np.arange(40))
     text = (out / "diagnostics.csv").read_text()
     assert "nan" not in text.lower()
     assert len(text.strip().splitlines()) == 41
+    assert "nan" not in (out / "evaluation.json").read_text().lower()
     assert json.loads((out / "evaluation.json").read_text())["restarts"] == 0
     assert VoConfig.load(out / "config.toml") == VoConfig()
 
