@@ -1,5 +1,5 @@
 """Plots (PNG, matplotlib's Agg canvas: headless, no display, no pyplot state) and the
-``report.md`` of a run folder.
+``report.md`` of a run folder. Each ``plot_*`` function saves its PNG and returns the figure.
 
 Files (each written atomically; a plot that has no data is not written and the report says why):
 
@@ -84,11 +84,14 @@ def _submap_label(sid: int, scale: float | None) -> str:
 
 
 def plot_trajectory(path: Path, aligned: Trajectory, ground_truth: Trajectory, t0: float,
-                    scales: dict[int, float], skipped: dict[int, str]) -> None:
-    """Top view and height of the aligned estimate against the ground truth."""
+                    scales: dict[int, float], skipped: dict[int, str],
+                    span: tuple[float, float] | None = None) -> Figure:
+    """Top view and height of the aligned estimate against the ground truth (drawn over
+    ``span``, default the estimate's time span)."""
     fig = Figure(figsize=(12.0, 5.2), layout="constrained")
     top, height = fig.subplots(1, 2, width_ratios=(1.0, 1.25))
-    span = (aligned.timestamps[0] - 1.0, aligned.timestamps[-1] + 1.0)
+    span = span or (aligned.timestamps[0], aligned.timestamps[-1])
+    span = (span[0] - 1e-6, span[1] + 1e-6)
     gt_in = (ground_truth.timestamps >= span[0]) & (ground_truth.timestamps <= span[1])
     gt_p, gt_t = ground_truth.positions[gt_in], ground_truth.timestamps[gt_in]
     top.plot(gt_p[:, 0], gt_p[:, 1], color=GT_COLOR, lw=3.0, alpha=0.6, label="ground truth")
@@ -114,10 +117,11 @@ def plot_trajectory(path: Path, aligned: Trajectory, ground_truth: Trajectory, t
         note = "; ".join(f"sub-map {k} not aligned: {v}" for k, v in skipped.items())
         fig.suptitle(note, fontsize=8, color="#a00")
     _save(fig, path)
+    return fig
 
 
 def plot_translation_error(path: Path, ate_result, rpe_result, diagnostics: Sequence[FrameDiagnostics],
-                           t0: float) -> None:
+                           t0: float) -> Figure:
     """ATE position error per pose and RPE translation error over time."""
     fig = Figure(figsize=(11.0, 4.6), layout="constrained")
     ax = fig.subplots()
@@ -140,6 +144,7 @@ def plot_translation_error(path: Path, ate_result, rpe_result, diagnostics: Sequ
     ax.grid(alpha=0.3)
     fig.legend(loc="outside lower center", fontsize=8, ncol=2)
     _save(fig, path)
+    return fig
 
 
 def _mark_events(ax, diagnostics: Sequence[FrameDiagnostics], t0: float) -> None:
@@ -171,7 +176,7 @@ def _shade_init(ax, diagnostics: Sequence[FrameDiagnostics], t0: float) -> None:
 
 
 def plot_points(path: Path, diagnostics: Sequence[FrameDiagnostics], keyframe_times: Sequence[float],
-                t0: float) -> None:
+                t0: float) -> Figure:
     """Tracked points, finite and infinite landmarks per frame, with the keyframes."""
     fig = Figure(figsize=(11.0, 4.6), layout="constrained")
     ax = fig.subplots()
@@ -194,19 +199,23 @@ def plot_points(path: Path, diagnostics: Sequence[FrameDiagnostics], keyframe_ti
     ax.grid(alpha=0.3)
     fig.legend(loc="outside lower center", fontsize=8, ncol=3)
     _save(fig, path)
+    return fig
 
 
-def plot_scale(path: Path, series, lambda_t: np.ndarray | None, lambda_v: np.ndarray | None,
-               diagnostics: Sequence[FrameDiagnostics], t0: float) -> None:
-    """Relative scale error over time (and Λ on its own axis when available)."""
+def plot_scale(path: Path, series, submaps: np.ndarray, lambda_t: np.ndarray | None,
+               lambda_v: np.ndarray | None, diagnostics: Sequence[FrameDiagnostics], t0: float) -> Figure:
+    """Relative scale error over time, one curve per sub-map (``submaps``: the sub-map of each
+    sample), and Λ on its own axis when available."""
     with_lambda = lambda_t is not None and lambda_t.size > 0
     fig = Figure(figsize=(11.0, 6.8 if with_lambda else 4.4), layout="constrained")
     axes = fig.subplots(2 if with_lambda else 1, 1, sharex=True, squeeze=False)[:, 0]
     ax = axes[0]
     _mark_events(ax, diagnostics, t0)
     ax.axhline(0.0, color="black", lw=0.8)
-    ax.plot(series.timestamps - t0, 100.0 * series.errors, color="#1f77b4", lw=1.3,
-            label=f"relative scale error over Δ = {series.delta:g} s")
+    for a, b in _blocks(submaps):
+        sid = int(submaps[a])
+        ax.plot(series.timestamps[a:b] - t0, 100.0 * series.errors[a:b], color=_color(sid), lw=1.3,
+                marker="." if b - a == 1 else None, label=f"relative scale error over Δ = {series.delta:g} s, sub-map {sid}")
     ax.set(ylabel="scale error [%]",
            title=f"relative scale error (estimated / true length of the last {series.delta:g} s of motion, "
                  f"aligned scale of the sub-map, minus 1); RMS {100.0 * series.rms:.2f} %")
@@ -220,6 +229,7 @@ def plot_scale(path: Path, series, lambda_t: np.ndarray | None, lambda_v: np.nda
     axes[-1].set_xlabel("time [s]")
     fig.legend(loc="outside lower center", fontsize=8, ncol=2)
     _save(fig, path)
+    return fig
 
 
 def _lambda_series(diagnostics: Sequence[FrameDiagnostics]) -> tuple[np.ndarray, np.ndarray] | None:
@@ -254,8 +264,9 @@ def write_plots(run_dir: str | Path, trajectory: Trajectory, diagnostics: Sequen
         for name in ("trajectory.png", "translation_error.png", "scale.png"):
             report.missing[name] = f"the estimate cannot be aligned to the ground truth ({error})"
         return report
+    span = (t0, float(diagnostics[-1].timestamp) if diagnostics else float(trajectory.timestamps[-1]))
     plot_trajectory(out / "trajectory.png", ate_result.aligned, ground_truth, t0, ate_result.scales,
-                    ate_result.skipped_submaps)
+                    ate_result.skipped_submaps, span)
     report.plots["trajectory.png"] = "estimate (Sim(3)-aligned per sub-map) and ground truth"
     try:
         rpe_result = rpe(trajectory, ground_truth, delta)
@@ -265,7 +276,9 @@ def write_plots(run_dir: str | Path, trajectory: Trajectory, diagnostics: Sequen
     report.plots["translation_error.png"] = "position error (ATE) and RPE translation error over time"
     series = relative_scale_error(trajectory, ground_truth, delta, ate_result.scales)
     if series.errors.size:
-        plot_scale(out / "scale.png", series, *(lam if lam is not None else (None, None)), diagnostics, t0)
+        rows = np.clip(np.searchsorted(trajectory.timestamps, series.timestamps - 1e-9), 0, len(trajectory) - 1)
+        plot_scale(out / "scale.png", series, trajectory.submap_ids()[rows],
+                   *(lam if lam is not None else (None, None)), diagnostics, t0)
         report.plots["scale.png"] = "relative scale error" + (" and Λ_scaledrift" if lam is not None else "")
     else:
         report.missing["scale.png"] = f"no {delta:g} s interval with enough true motion (>= 0.1 m)"
@@ -327,8 +340,10 @@ def report_markdown(title: str, header: Sequence[str], summary: dict, evaluation
     else:
         lines.append("No ground truth: no evaluation.")
     lines += ["", "## Plots", ""]
-    for name, caption in plots.plots.items():
-        lines += [f"![{caption}]({image_prefix}{name})", "", f"*{caption}* (`{name}`)", ""]
+    for name in PLOT_FILES:  # in this order, whatever order they were drawn in
+        if name in plots.plots:
+            caption = plots.plots[name]
+            lines += [f"![{caption}]({image_prefix}{name})", "", f"*{caption}* (`{name}`)", ""]
     for name, reason in plots.missing.items():
         lines += [f"- `{name}` not written: {reason}"]
     return "\n".join(lines).rstrip() + "\n"
