@@ -79,9 +79,9 @@ def _extent(positions: np.ndarray) -> float:
 
 #: The RPE Δ of every command (``granite run``, ``granite demo``, ``granite eval``, the
 #: benchmark) unless ``--delta`` says otherwise, in seconds. The paper's 4 s suits MADMAX's 1 Hz
-#: ground truth; our test-bench ground truth is 20 Hz and its flights (and the benchmark windows)
-#: last 6-15 s, so 1 s gives 20 pairs per second of flight over 1-7 m of motion and excludes
-#: only the first second, where 4 s would exclude a third of a short flight.
+#: ground truth; our test-bench ground truth is 20 Hz, the demo flight lasts 6 s and the benchmark
+#: windows 8-15 s, so 1 s gives 20 pairs per second of flight and excludes only the first second,
+#: where 4 s would exclude a third of a short flight.
 DEFAULT_RPE_DELTA = 1.0
 
 
