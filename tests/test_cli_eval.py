@@ -166,6 +166,7 @@ def test_bad_delta_is_a_usage_error(capsys, files) -> None:
     assert "positive number of seconds" in err and err.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_subprocess_error_has_no_traceback(tmp_path, files) -> None:
     bad = tmp_path / "bad.tum"
     bad.write_text(GOOD + "0.5 1 0 0 0 0 0 1\n")

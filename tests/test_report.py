@@ -155,14 +155,27 @@ def _circle(n: int, scale: float = 1.0):
     return Trajectory(t, poses), Trajectory(t, est, np.zeros(n, np.int64))
 
 
-@pytest.mark.parametrize("with_lambda", [False, True])
-def test_scale_plot_gets_a_lambda_panel_once_the_column_exists(tmp_path, with_lambda):
+def test_scale_plot_gets_a_lambda_panel_once_the_column_exists(tmp_path, monkeypatch):
+    """With a ``scale_drift_indicator`` column (a field of the diagnostics rows) the scale plot
+    gets a second panel drawing exactly the finite Λ values; without it, one panel."""
+    from granite.evaluation import relative_scale_error
+    from granite.visualization import report as module
+
+    figures = []
+    original = module.plot_scale
+    monkeypatch.setattr(module, "plot_scale", lambda *a, **k: figures.append(original(*a, **k)) or figures[-1])
     gt, est = _circle(120, scale=0.3)
-    report = write_plots(tmp_path, est, _diagnostics(120, with_lambda), [0.0, 0.5], gt, 1.0)
+    report = write_plots(tmp_path, est, _diagnostics(120, True), [0.0, 0.5], gt, 1.0)
     assert set(report.plots) == {"trajectory.png", "translation_error.png", "points.png", "scale.png"}
-    height = _check_png(tmp_path / "scale.png", 1210).shape[0]
-    assert height == (748 if with_lambda else 484)  # a second panel only with Λ
-    assert ("Λ" in report.plots["scale.png"]) == with_lambda
+    assert "Λ" in report.plots["scale.png"]
+    (fig,) = figures
+    assert len(fig.axes) == 2
+    assert list(fig.axes[1].lines[0].get_ydata()) == pytest.approx([1e3 * (1 + k) for k in range(10, 120)])
+    with_lambda = _check_png(tmp_path / "scale.png", 1210).shape[0]
+    series = relative_scale_error(est, gt, 1.0)
+    plain = original(tmp_path / "plain.png", series, np.zeros(series.timestamps.size, np.int64), None, None,
+                     _diagnostics(120, False), 0.0)
+    assert len(plain.axes) == 1 and _check_png(tmp_path / "plain.png", 1210).shape[0] < with_lambda
 
 
 def test_trajectory_plot_draws_each_submap_aligned_on_the_ground_truth(tmp_path):

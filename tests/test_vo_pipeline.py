@@ -57,6 +57,7 @@ def test_run_cli_writes_outputs_and_no_nan(flight_dataset, tmp_path):
     assert VoConfig.load(out / "config.toml") == VoConfig()
 
 
+@pytest.mark.slow
 def test_static_start_blank_stretch_and_corrupt_image(tmp_path):
     """Hover for 3 s, then fly; frames 70-74 blank, 90-91 over-exposed, frame 100 corrupt."""
     n_static, n_move = 60, 80
@@ -82,6 +83,7 @@ def test_static_start_blank_stretch_and_corrupt_image(tmp_path):
     assert diags[-1].state == "tracking"
 
 
+@pytest.mark.slow
 def test_pure_rotation_before_translation_is_tracked(tmp_path):
     """Rotate in place (yaw sweep of 40 degrees over 3 s), then translate."""
     n_rot, n_move = 60, 60
@@ -139,6 +141,7 @@ def _long_turn(tmp_path):
     return open_dataset(write_planar_dataset(tmp_path / "turn", ts, poses)), poses, (n_leg1, n_turn, n_leg2)
 
 
+@pytest.mark.slow
 def test_map_lost_in_a_long_turn_is_reinitialised_with_the_scale_it_had(tmp_path):
     """The long turn: the map is initialised again in the same sub-map, and its scale stays
     close to the first one (the scene keeps its distance)."""
