@@ -230,3 +230,18 @@ def test_bad_options_are_one_line(tmp_path, capsys):
             main(argv)
         err = capsys.readouterr().err
         assert info.value.code == 2 and err.count("\n") == 1 and "granite run: error:" in err
+
+
+def test_view_reads_a_run_folder_with_skipped_frames(run_dir, tmp_path, capsys):
+    """`granite view` pairs the poses (estimated frames only) with every frame's records."""
+    import rerun as rr
+
+    rrd = tmp_path / "view.rrd"
+    assert main(["view", str(run_dir), "--rerun", str(rrd)]) == 0
+    recording = rr.dataframe.load_recording(str(rrd))
+    table = recording.view(index="frame", contents="/world/camera").select().read_all()
+    frames = table.column("frame").to_pylist()
+    translations = table.column("/world/camera:Translation3D").to_pylist()
+    posed = {f for f, t in zip(frames, translations) if t is not None}
+    estimated = set(np.loadtxt(run_dir / "submaps.csv", delimiter=",", skiprows=1)[:, 1].astype(int).tolist())
+    assert posed == estimated and SKIPPED.isdisjoint(posed)  # a camera pose exactly where one was estimated

@@ -9,7 +9,7 @@ from pathlib import Path
 from granite.errors import InputError
 from granite.estimator.diagnostics import read_diagnostics
 from granite.estimator.records import read_records
-from granite.io import open_dataset, read_estimate
+from granite.io import check_writable, open_dataset, read_estimate
 from granite.visualization.run_view import RunView
 
 
@@ -46,6 +46,8 @@ def run(args) -> int:
     if len(records) != len(diagnostics) or len(trajectory) not in (len(posed), len(diagnostics)):
         raise InputError("trajectory, diagnostics and records disagree on the number of frames", run_dir)
     rrd = None if args.spawn and not args.rerun else (args.rerun or run_dir / "recording.rrd")
+    if rrd is not None:
+        check_writable(rrd, folder=False)
     view = RunView(f"granite-view-{dataset.name}", dataset.calibration, dataset.ground_truth, rrd, args.spawn)
     for record, diag in zip(records, diagnostics):
         frame = dataset.frame(record.index)

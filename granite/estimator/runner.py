@@ -252,6 +252,8 @@ def write_run(out_dir: str | Path, result: RunResult, config: VoConfig, extra: d
     atomic_write_text(out / "submaps.csv", submaps_csv(result))
     if "kitti" in formats:
         write_kitti_poses(out / "trajectory.kitti", result.trajectory)
+    else:  # not from an earlier run into the same folder
+        (out / "trajectory.kitti").unlink(missing_ok=True)
     write_diagnostics(out / "diagnostics.csv", result.diagnostics)
     rows = ["timestamp,frame_index,submap"] + [f"{t:.9f},{f},{s}" for t, f, s in result.keyframes]
     atomic_write_text(out / "keyframes.csv", "\n".join(rows) + "\n")
