@@ -319,7 +319,7 @@ def report_markdown(title: str, header: Sequence[str], summary: dict, evaluation
     lines = [f"# {title}", "", *[f"- {h}" for h in header], ""]
     lines += ["## Run", "",
               f"- frames: {summary['frames']} ({summary['estimated_frames']} estimated, "
-              f"{summary['skipped_frames']} skipped and left out of `trajectory.tum`)",
+              f"{summary['skipped_frames']} skipped: no pose, not in `trajectory.tum`)",
               f"- restarts: {summary['restarts']}, sub-maps: {summary['submaps']}, keyframes: {summary['keyframes']}",
               f"- VO time: {summary['mean_processing_ms']:.1f} ms per frame"
               + (f" ({summary['frames_per_second']:.1f} fps)" if summary.get("frames_per_second") else "")]
