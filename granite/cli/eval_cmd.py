@@ -25,9 +25,9 @@ Evaluate an estimated trajectory against the ground truth, as in the paper (Sec.
          number of sub-map changes (tracking failures).
 
 Sub-maps: each has its own origin and scale, so they are aligned and evaluated apart. They
-come from the 9th column of EST (older granite runs), else from a submaps.csv beside EST (what
-`granite run` writes next to its 8-column trajectory.tum), else --submaps FILE; without any,
-EST is one sub-map (the output says which).
+come from --submaps FILE when given ('none': one sub-map), else from the 9th column of EST
+(older granite runs), else from a submaps.csv beside EST (what `granite run` writes next to
+its 8-column trajectory.tum); without any, EST is one sub-map (the output says which).
 
 The ground truth is linearly interpolated (slerp for rotations) at the estimate's
 timestamps. Errors are in ground-truth units (metres)."""
