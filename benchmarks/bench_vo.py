@@ -2,6 +2,7 @@
 
     python benchmarks/bench_vo.py [--data DIR] [--scenarios spiral rotation ...] [--ablations]
                                   [--width 640 --height 480] [--delta 1] [--no-render] [--rerun]
+                                  [--config FILE ...] [--datasets DIR ...]
 
 Renders each scenario at WIDTHxHEIGHT into DIR/<scenario> with granite-sim when it is not there
 yet (resumable), runs `granite run` on it and prints one row per scenario (and per ablation:
@@ -13,6 +14,11 @@ With --rerun each scenario's "ours" run is repeated with a rerun recording, and 
 cost (wall time spent in the recording's per-frame logging and final 3D content, per frame;
 the one-time start-up, which builds the blueprint, apart) is printed beside the VO's frame
 time. Results also go to DIR/bench_vo.json.
+
+Configurations: the built-in defaults ("ours": configs/mono_default.toml, our additions on) unless
+--config names files (repeatable; configs/reference.toml = the reference configuration, rows
+"reference", "reference †", ...). Every row says which configuration it comes from.
+--datasets runs on existing dataset folders instead of rendering (e.g. assets/sequences/*).
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ import numpy as np  # noqa: E402
 
 from granite.estimator.config import VoConfig  # noqa: E402
 from granite.cli.run_cmd import perform_run  # noqa: E402
+from granite.evaluation import DEFAULT_RPE_DELTA  # noqa: E402
 from granite.io import open_dataset  # noqa: E402
 
 SCENARIOS = ("spiral", "rotation", "hover", "survey", "framedrop", "aggressive")
@@ -39,8 +46,16 @@ SCENARIOS = ("spiral", "rotation", "hover", "survey", "framedrop", "aggressive")
 #: renders complete flights (about 4300 frames, 2-3 h).
 WINDOWS = {"spiral": "0:300", "rotation": "40:280", "hover": "0:160", "survey": "0:200",
            "framedrop": "0:200", "aggressive": "0:160"}
-VARIANTS = {"ours": {}, "ours †": {"optical_flow": {"detect_all_levels": False}},
-            "ours ‡": {"estimator": {"previous_frame_as_keyframe": False}}}
+VARIANTS = {"": {}, " †": {"optical_flow": {"detect_all_levels": False}},
+            " ‡": {"estimator": {"previous_frame_as_keyframe": False}}}
+
+
+def with_overrides(config: VoConfig, overrides: dict) -> VoConfig:
+    """``config`` with ``{table: {key: value}}`` replaced (validated)."""
+    import dataclasses
+
+    tables = {name: dataclasses.replace(getattr(config, name), **values) for name, values in overrides.items()}
+    return dataclasses.replace(config, **tables)
 
 
 def ensure_rendered(scenario: str, folder: Path, width: int, height: int, frames: str | None) -> None:
@@ -59,7 +74,11 @@ def main() -> int:
     parser.add_argument("--ablations", action="store_true", help="also run † and ‡")
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
-    parser.add_argument("--delta", type=float, default=1.0)
+    parser.add_argument("--delta", type=float, default=DEFAULT_RPE_DELTA)
+    parser.add_argument("--config", type=Path, action="append",
+                        help="configuration file (repeatable; default: the built-in defaults)")
+    parser.add_argument("--datasets", type=Path, nargs="+",
+                        help="run on these dataset folders instead of rendering the scenarios")
     parser.add_argument("--no-render", action="store_true", help="use only already rendered datasets")
     parser.add_argument("--full", action="store_true", help="render and run complete flights, not the windows")
     parser.add_argument("--rerun", action="store_true",
@@ -68,24 +87,40 @@ def main() -> int:
 
     rows = []
     logging_cost: list[dict] = []
-    variants = VARIANTS if args.ablations else {"ours": {}}
-    for scenario in args.scenarios:
-        window = None if args.full else WINDOWS.get(scenario)
-        suffix = "" if window is None else "_" + window.replace(":", "-")
-        folder = args.data / f"{scenario}_{args.width}x{args.height}{suffix}"
-        if not args.no_render:
+    variants = VARIANTS if args.ablations else {"": {}}
+    configs = {"ours": (VoConfig(), "built-in defaults (configs/mono_default.toml)")}
+    if args.config:
+        configs = {("ours" if p.stem == "mono_default" else p.stem): (VoConfig.load(p), str(p)) for p in args.config}
+    for name, (_, label) in configs.items():
+        print(f"configuration {name}: {label}")
+    if args.datasets:
+        folders = [(p.name, p, None) for p in args.datasets]
+    else:
+        folders = []
+        for scenario in args.scenarios:
+            window = None if args.full else WINDOWS.get(scenario)
+            suffix = "" if window is None else "_" + window.replace(":", "-")
+            folders.append((scenario, args.data / f"{scenario}_{args.width}x{args.height}{suffix}", window))
+    for scenario, folder, window in folders:
+        if not args.datasets and not args.no_render:
             ensure_rendered(scenario, folder, args.width, args.height, window)
         if not (folder / "mav0").is_dir():
             print(f"{scenario}: not rendered, skipped")
             continue
         dataset = open_dataset(folder)
-        for name, overrides in variants.items():
-            config = VoConfig.from_dict(overrides)
+        for (base, (base_config, config_label)), (suffix_name, overrides) in (
+                (c, v) for c in configs.items() for v in variants.items()):
+            name = base + suffix_name
+            config = with_overrides(base_config, overrides)
             out = args.data / "runs" / f"{scenario}_{name.replace(' ', '_')}"
             t0 = time.perf_counter()
-            result, ev = perform_run(dataset, config, out, None, delta=args.delta, progress=False)
+            result, ev = perform_run(dataset, config, out, None, delta=args.delta, progress=False,
+                                     config_label=config_label + suffix_name)
             wall = time.perf_counter() - t0
-            if args.rerun and name == "ours":
+            if ev is None:
+                print(f"{scenario:<11} {name:<12} evaluation failed: {result.evaluation_error}", flush=True)
+                continue
+            if args.rerun and name == "ours":  # the built-in defaults, no ablation
                 logged, _ = perform_run(dataset, config, out, out / "recording.rrd", delta=args.delta,
                                         progress=False)
                 n = len(logged.diagnostics)
@@ -100,13 +135,14 @@ def main() -> int:
                       flush=True)
             ms = np.array([d.processing_ms for d in result.diagnostics])
             rows.append({
-                "scenario": scenario, "frames_window": window or "all", "variant": name, "frames": len(result.diagnostics),
+                "scenario": scenario, "frames_window": window or "all", "variant": name,
+                "configuration": config_label + suffix_name, "frames": len(result.diagnostics),
                 "restarts": ev["restarts"], "tracking_percentage": ev["tracking_percentage"],
                 "rpe_rmse": ev["rpe_rmse"], "ate_over_path_length": ev["ate_over_path_length"],
                 "path_length": ev["path_length"], "vo_fps": 1000.0 / ms.mean(), "wall_s": wall,
             })
             r = rows[-1]
-            print(f"{scenario:<11} {name:<7} restarts {r['restarts']:>2}  tracking {r['tracking_percentage']:6.1f} %  "
+            print(f"{scenario:<11} {name:<12} restarts {r['restarts']:>2}  tracking {r['tracking_percentage']:6.1f} %  "
                   f"RPE {r['rpe_rmse'] if r['rpe_rmse'] is not None else float('nan'):.3f} m  "
                   f"ATE {100 * (r['ate_over_path_length'] or float('nan')):.2f} % of {r['path_length']:.0f} m  "
                   f"{r['vo_fps']:.1f} fps", flush=True)
@@ -122,7 +158,8 @@ def main() -> int:
               f"{100 * c['logging_ms_per_frame'] / c['vo_ms_per_frame']:.0f} % of the VO's frame time, "
               f"start-up {c['startup_s']:.1f} s, recording {c['recording_mb']:.0f} MB")
     args.data.mkdir(parents=True, exist_ok=True)
-    report = {"rows": rows, "logging_cost": logging_cost}
+    report = {"rows": rows, "logging_cost": logging_cost, "delta": args.delta,
+              "configurations": {name: label for name, (_, label) in configs.items()}}
     (args.data / "bench_vo.json").write_text(json.dumps(report, indent=2) + "\n")
     return 0
 

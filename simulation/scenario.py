@@ -15,20 +15,14 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, get_origin, get_type_hints
+from typing import Any
 
+from granite.config_schema import build_dataclass
+from granite.config_schema import check_value as _check_value
+from granite.config_schema import spec_field as _f
 from granite.errors import ConfigError
 
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
-
-
-def _f(default: Any, lo: float | None = None, hi: float | None = None, *,
-       choices: tuple | None = None, length: int | None = None, doc: str = "") -> Any:
-    """A dataclass field with validation metadata (closed range ``[lo, hi]``)."""
-    meta = {"lo": lo, "hi": hi, "choices": choices, "length": length, "doc": doc}
-    if isinstance(default, (list, tuple)):
-        return field(default_factory=lambda d=tuple(default): d, metadata=meta)
-    return field(default=default, metadata=meta)
 
 
 @dataclass(frozen=True)
@@ -281,53 +275,11 @@ _SECTIONS = {
 }
 
 
-def _check_value(value: Any, typ: Any, meta: dict, where: str, err) -> Any:
-    if typ is bool:
-        if not isinstance(value, bool):
-            raise err(f"{where} must be true or false, got {value!r}")
-        return value
-    if typ is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise err(f"{where} must be an integer, got {value!r}")
-    elif typ is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise err(f"{where} must be a number, got {value!r}")
-        value = float(value)
-        if not math.isfinite(value):
-            raise err(f"{where} must be finite, got {value!r}")
-    elif typ is str:
-        if not isinstance(value, str):
-            raise err(f"{where} must be a string, got {value!r}")
-    elif typ is tuple:
-        if not isinstance(value, (list, tuple)) or not value:
-            raise err(f"{where} must be a non-empty list of numbers, got {value!r}")
-        n = meta.get("length")
-        if n is not None and len(value) != n:
-            raise err(f"{where} must have {n} elements, got {len(value)}")
-        return tuple(_check_value(v, float, meta, f"{where}[{i}]", err) for i, v in enumerate(value))
-    choices = meta.get("choices")
-    if choices is not None and value not in choices:
-        raise err(f"{where} must be one of {', '.join(map(repr, choices))}, got {value!r}")
-    lo, hi = meta.get("lo"), meta.get("hi")
-    if lo is not None and value < lo or hi is not None and value > hi:
-        raise err(f"{where} must be in [{lo:g}, {hi:g}], got {value!r}")
-    return value
-
-
 def _build(cls: type, table: Any, prefix: str, err, skip: tuple = ()) -> Any:
-    if not isinstance(table, dict):
-        raise err(f"[{prefix}] must be a table")
-    hints = get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.name not in skip}
-    kwargs = {}
-    for key, value in table.items():
-        if key not in fields:
-            known = ", ".join(sorted(fields))
-            raise err(f"unknown key {prefix}.{key} (known keys: {known})")
-        typ = hints[key]
-        typ = tuple if get_origin(typ) is tuple or typ is tuple else typ
-        kwargs[key] = _check_value(value, typ, dict(fields[key].metadata), f"{prefix}.{key}", err)
-    return cls(**kwargs)
+    return build_dataclass(
+        cls, table, err, where=lambda key: f"{prefix}.{key}",
+        unknown=lambda key, known: f"unknown key {prefix}.{key} (known keys: {known})",
+        name=prefix, skip=skip)
 
 
 def _cross_checks(s: Scenario, err) -> None:

@@ -146,6 +146,7 @@ def sequence_flow_errors(root: Path, max_frames: int = MAX_FRAMES) -> tuple[np.n
     return (np.concatenate(errors) if errors else np.zeros(0)), pairs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "root",
     _sequences() or [pytest.param(None, marks=pytest.mark.skip(reason="no pre-rendered sequence in assets/sequences"))],

@@ -47,6 +47,7 @@ def _column(table, name):
     return table.column(name).to_pylist()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("recording", ["live.rrd", "recording.rrd"])
 def test_recording_holds_images_points_trajectories_and_series(run, recording):
     run_dir, N, n_gt = run

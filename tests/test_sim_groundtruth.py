@@ -134,6 +134,7 @@ def _pairs(seq: Sequence, max_pairs: int = 4):
 
 
 @pytest.mark.skipif(not SEQUENCES, reason="no committed sequences in assets/sequences")
+@pytest.mark.slow
 @pytest.mark.parametrize("root", SEQUENCES, ids=[p.name for p in SEQUENCES])
 def test_reprojected_patches_match(root: Path):
     seq = Sequence(root)

@@ -17,7 +17,7 @@ from simulation.flights import camera_rotation
 from simulation.scenario import parse_scenario
 
 bpy = pytest.importorskip("bpy")
-pytestmark = pytest.mark.blender
+pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
 SMALL_TERRAIN = {"extent": 16.0, "resolution": 0.5, "far_extent": 40.0, "crater_density": 40.0,
                  "crater_max_diameter": 6.0, "rock_density": 0.3}

@@ -22,6 +22,7 @@ def test_required_scenarios_exist():
     assert REQUIRED <= set(BUNDLED)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", BUNDLED)
 def test_bundled_scenario_is_valid_and_flyable(name):
     s = load_scenario(name)

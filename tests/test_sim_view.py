@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 import rerun as rr
 
 from simulation.cli import main
@@ -17,6 +18,7 @@ def _rows(path: Path) -> list[list[str]]:
     return [line.split(",") for line in path.read_text().splitlines() if not line.startswith("#")]
 
 
+@pytest.mark.slow
 def test_dataset_recording_holds_images_depth_and_ground_truth_poses(tmp_path):
     rrd = tmp_path / "framedrop.rrd"
     assert main(["view", str(DATASET), "--rerun", str(rrd), "--quiet"]) == 0

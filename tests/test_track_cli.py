@@ -139,10 +139,14 @@ def test_finest_level_only_and_config_file(capsys, dataset, tmp_path):
         (lambda d, t: [t / "missing", "--out", t / "x.csv"], "not found"),
         (lambda d, t: [d, "--out", t / "x.csv", "--levels", "0"], "levels"),
         (lambda d, t: [d, "--out", t / "x.csv", "--config", t / "bad.toml"], "unknown key"),
+        (lambda d, t: [d, "--out", t / "x.csv", "--config", t / "typed.toml"],
+         "typed.toml: [optical_flow] grid_size: must be an integer, got '40'"),
+        (lambda d, t: [d, "--out", t / "bad.toml" / "x.csv"], "cannot be created"),
     ],
 )
 def test_user_errors_exit_2_with_one_line(capsys, dataset, tmp_path, make_args, message):
     (tmp_path / "bad.toml").write_text("levls = 3\n")
+    (tmp_path / "typed.toml").write_text('[optical_flow]\ngrid_size = "40"\n')
     code, out, err = run_cli(capsys, *make_args(dataset, tmp_path))
     assert code == 2 and out == ""
     assert err.count("\n") == 1 and err.startswith("granite track: error:") and message in err

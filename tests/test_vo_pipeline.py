@@ -46,14 +46,18 @@ def test_run_cli_writes_outputs_and_no_nan(flight_dataset, tmp_path):
     out = tmp_path / "run"
     assert main(["run", str(flight_dataset), "--out", str(out), "--quiet", "--max-frames", "40"]) == 0
     rows = np.loadtxt(out / "trajectory.tum")
-    assert rows.shape == (40, 9) and np.all(np.isfinite(rows))
+    assert rows.shape == (40, 8) and np.all(np.isfinite(rows))  # plain TUM
+    submaps = np.loadtxt(out / "submaps.csv", delimiter=",", skiprows=1)
+    assert np.allclose(submaps[:, 0], rows[:, 0]) and np.array_equal(submaps[:, 1], np.arange(40))
     text = (out / "diagnostics.csv").read_text()
     assert "nan" not in text.lower()
     assert len(text.strip().splitlines()) == 41
+    assert "nan" not in (out / "evaluation.json").read_text().lower()
     assert json.loads((out / "evaluation.json").read_text())["restarts"] == 0
     assert VoConfig.load(out / "config.toml") == VoConfig()
 
 
+@pytest.mark.slow
 def test_static_start_blank_stretch_and_corrupt_image(tmp_path):
     """Hover for 3 s, then fly; frames 70-74 blank, 90-91 over-exposed, frame 100 corrupt."""
     n_static, n_move = 60, 80
@@ -79,6 +83,7 @@ def test_static_start_blank_stretch_and_corrupt_image(tmp_path):
     assert diags[-1].state == "tracking"
 
 
+@pytest.mark.slow
 def test_pure_rotation_before_translation_is_tracked(tmp_path):
     """Rotate in place (yaw sweep of 40 degrees over 3 s), then translate."""
     n_rot, n_move = 60, 60
@@ -120,10 +125,9 @@ def test_run_cli_bad_input(tmp_path, capsys):
     assert "calib" in capsys.readouterr().err
 
 
-def test_map_lost_in_a_long_turn_is_reinitialised_with_the_scale_it_had(tmp_path):
-    """Fly 2 s, turn 180 degrees in place (every finite landmark leaves the view, new ones are at
-    infinity), fly 3 s along the new heading: the map is initialised again in the same sub-map,
-    and its scale stays close to the first one (the scene keeps its distance)."""
+def _long_turn(tmp_path):
+    """Fly 2 s, turn 180 degrees in place (every finite landmark leaves the view, new ones are
+    at infinity), fly 3 s along the new heading."""
     n_leg1, n_turn, n_leg2 = 40, 60, 60
     pitch, height, speed = 50, 10.0, 2.0
     ts = np.arange(n_leg1 + n_turn + n_leg2) / 20.0
@@ -134,7 +138,15 @@ def test_map_lost_in_a_long_turn_is_reinitialised_with_the_scale_it_had(tmp_path
     poses += [look_down_pose(stop + [0.0, -speed * k / 20.0, 0.0], yaw=np.pi, pitch_deg=pitch)
               for k in range(1, n_leg2 + 1)]
     poses = np.array(poses)
-    dataset = open_dataset(write_planar_dataset(tmp_path / "turn", ts, poses))
+    return open_dataset(write_planar_dataset(tmp_path / "turn", ts, poses)), poses, (n_leg1, n_turn, n_leg2)
+
+
+@pytest.mark.slow
+def test_map_lost_in_a_long_turn_is_reinitialised_with_the_scale_it_had(tmp_path):
+    """The long turn: the map is initialised again in the same sub-map, and its scale stays
+    close to the first one (the scene keeps its distance)."""
+    dataset, poses, (n_leg1, n_turn, n_leg2) = _long_turn(tmp_path)
+    ts = dataset.timestamps
     result = run_vo(dataset, VoConfig(), progress=False)
     _check_no_nan(result)
     states = [d.state for d in result.diagnostics]
@@ -150,3 +162,18 @@ def test_map_lost_in_a_long_turn_is_reinitialised_with_the_scale_it_had(tmp_path
     s1 = scale(n_leg1 - 21, n_leg1 - 1)
     s2 = scale(len(ts) - 21, len(ts) - 1)
     assert 0.7 < s2 / s1 < 1.4
+
+
+@pytest.mark.slow
+def test_reinitialisation_without_keeping_the_scale_starts_a_new_submap(tmp_path):
+    """reinit_keeps_scale = false (the reference's fixed initial scale): the re-initialisation
+    after the long turn starts a new sub-map there, without a tracking failure."""
+    dataset, _, (n_leg1, n_turn, _) = _long_turn(tmp_path)
+    config = VoConfig.from_dict({"estimator": {"reinit_keeps_scale": False}})
+    result = run_vo(dataset, config, progress=False)
+    states = [d.state for d in result.diagnostics]
+    submaps = [d.submap for d in result.diagnostics]
+    reinit = [i for i, s in enumerate(states) if s == "reinit"]
+    assert "lost" not in states and len(reinit) == 1 and reinit[0] >= n_leg1 + n_turn // 2
+    assert submaps[: reinit[0]] == [0] * reinit[0]
+    assert set(submaps[reinit[0]:]) == {1} and result.restarts == 1

@@ -14,6 +14,8 @@ from granite.io import open_dataset
 
 SEQUENCES = Path(__file__).resolve().parents[1] / "assets" / "sequences"
 
+pytestmark = pytest.mark.slow  # whole VO runs
+
 
 def _run(name: str):
     dataset = open_dataset(SEQUENCES / name)

@@ -1,29 +1,35 @@
 """``granite demo``: the main job. Render a Mars scenario with the test-bench, run the VO on it,
-evaluate against the exact ground truth, and write a report and a rerun recording."""
+evaluate against the exact ground truth, and write plots, a report and a rerun recording."""
 
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
+from granite.cli.eval_cmd import positive_seconds
+from granite.cli.run_cmd import cli_notifier, config_name, perform_run, summary_lines, write_run_report
 from granite.errors import GraniteError, InputError
 from granite.estimator.config import VoConfig
-from granite.io import atomic_write_text, open_dataset
-from granite.cli.run_cmd import perform_run, summary_lines
+from granite.evaluation import DEFAULT_RPE_DELTA
+from granite.io import atomic_write_text, check_writable, open_dataset
 
-DESCRIPTION = """\
+DESCRIPTION = f"""\
 The main job, in one command:
 
   1. granite-sim render SCENARIO --out OUT/dataset   (resumable: finished frames are kept)
   2. granite run OUT/dataset --out OUT/run --rerun OUT/recording.rrd
   3. evaluation against the rendered ground truth -> OUT/run/evaluation.json
-  4. OUT/report.md: scenario, run and evaluation summary
+     (RPE Δ = {DEFAULT_RPE_DELTA:g} s unless --delta says otherwise)
+  4. plots OUT/run/*.png and the report OUT/report.md (also OUT/run/report.md)
 
-Open the recording with `rerun OUT/recording.rrd`.
+The scenario, the overrides, the configuration and the output folder are checked before
+anything is rendered (bad input: one error line, exit status 2). Ctrl-C keeps what is finished
+(rendered frames; the frames the VO processed, with their outputs) and exits with 130; the
+same command resumes the rendering. Open the recording with `rerun OUT/recording.rrd`.
 """
 
 
@@ -37,13 +43,24 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, help="override the scenario's image width")
     p.add_argument("--height", type=int, help="override the scenario's image height")
     p.add_argument("--samples", type=int, help="override the scenario's Cycles samples")
-    p.add_argument("--config", type=Path, help="VO configuration (TOML)")
-    p.add_argument("--delta", type=float, default=1.0, help="RPE delta in seconds (default: 1)")
+    p.add_argument("--config", type=Path, help="VO configuration (TOML; default: the built-in defaults, "
+                   "configs/reference.toml = the reference's)")
+    p.add_argument("--delta", type=positive_seconds, default=DEFAULT_RPE_DELTA, metavar="SECONDS",
+                   help=f"RPE delta in seconds (default: {DEFAULT_RPE_DELTA:g}, as in every granite command)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
 
 
-def render(args, dataset_dir: Path) -> None:
+def check_scenario(args) -> None:
+    """The scenario file and the overrides, checked as granite-sim will (ConfigError)."""
+    from simulation.scenario import load_scenario, with_overrides
+
+    with_overrides(load_scenario(args.scenario), width=args.width, height=args.height, samples=args.samples)
+
+
+def render(args, dataset_dir: Path) -> int:
+    """Run granite-sim; returns its exit status. Ctrl-C lets it finish its files (it got the
+    same signal, or is sent one) and raises KeyboardInterrupt."""
     cmd = [sys.executable, "-m", "simulation.cli", "render", str(args.scenario), "--out", str(dataset_dir)]
     for flag in ("width", "height", "samples"):
         value = getattr(args, flag)
@@ -52,49 +69,61 @@ def render(args, dataset_dir: Path) -> None:
     if args.quiet:
         cmd.append("--quiet")
     print("render:", " ".join(cmd[2:]), flush=True)
-    completed = subprocess.run(cmd)
-    if completed.returncode != 0:
-        raise GraniteError(f"rendering the scenario failed (granite-sim exit code {completed.returncode})")
-
-
-def write_report(path: Path, args, dataset, result, evaluation) -> None:
-    lines = [
-        "# granite-py demo report",
-        "",
-        f"- date: {datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds')}",
-        f"- scenario: `{args.scenario}`; dataset `{dataset.root}` ({len(dataset)} images, format {dataset.format})",
-        f"- run folder: `{args.out / 'run'}`; rerun recording: `{args.out / 'recording.rrd'}`",
-        "",
-        "## Result",
-        "",
-        *[f"- {line}" for line in summary_lines(result, evaluation, args.delta)],
-        "",
-    ]
-    if evaluation is not None:
-        lines += ["## Evaluation", "", "| metric | value |", "| --- | --- |"]
-        for key in ("ate_rmse", "ate_over_path_length", "rpe_rmse", "tracking_percentage", "restarts",
-                    "path_length", "num_poses", "num_rpe_pairs"):
-            value = evaluation.get(key)
-            lines.append(f"| {key} | {value:.6g} |" if isinstance(value, float) else f"| {key} | {value} |")
-        lines += ["", f"ATE after Sim(3) alignment per sub-map; RPE as the paper's Eq. 18-20 with Δ = {args.delta:g} s."]
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    proc = subprocess.Popen(cmd)
+    try:
+        code = proc.wait()
+    except KeyboardInterrupt:
+        try:
+            try:
+                proc.wait(timeout=2.0)
+            except subprocess.TimeoutExpired:  # the signal reached this process only
+                proc.send_signal(signal.SIGINT)
+                proc.wait(timeout=30.0)
+        except (KeyboardInterrupt, subprocess.TimeoutExpired):
+            proc.kill()
+            proc.wait()
+        raise
+    if code in (130, -signal.SIGINT):
+        raise KeyboardInterrupt
+    return code
 
 
 def run(args) -> int:
-    args.out.mkdir(parents=True, exist_ok=True)
+    config = VoConfig.load(args.config) if args.config else VoConfig()
+    check_scenario(args)
+    check_writable(args.out)
     dataset_dir = args.out / "dataset"
-    render(args, dataset_dir)
+    try:
+        code = render(args, dataset_dir)
+    except KeyboardInterrupt:
+        print(f"granite demo: interrupted while rendering; the finished frames are kept in {dataset_dir} "
+              "(the same command resumes)", file=sys.stderr)
+        return 130
+    if code == 2:
+        return 2  # granite-sim printed the one error line
+    if code != 0:
+        raise GraniteError(f"rendering the scenario failed (granite-sim exit code {code})")
     dataset = open_dataset(dataset_dir)
     if dataset.ground_truth is None:
         raise InputError("the rendered dataset has no ground truth", dataset_dir)
-    config = VoConfig.load(args.config) if args.config else VoConfig()
+    run_dir = args.out / "run"
+    label = config_name(args)
     result, evaluation = perform_run(
-        dataset, config, args.out / "run", args.out / "recording.rrd", False, args.delta,
-        progress=not args.quiet,
+        dataset, config, run_dir, args.out / "recording.rrd", False, args.delta,
+        progress=not args.quiet, config_label=label, report=False, notify=cli_notifier("demo"),
     )
-    write_report(args.out / "report.md", args, dataset, result, evaluation)
-    atomic_write_text(args.out / "evaluation.json", json.dumps(evaluation, indent=2) + "\n")
+    header = (f"scenario: `{args.scenario}`", f"rerun recording: `{args.out / 'recording.rrd'}`")
+    write_run_report(run_dir, result, dataset, evaluation, args.delta, label,
+                     title=f"granite-py demo: {args.scenario}", header=header,
+                     copies=((args.out / "report.md", "run/"),))
+    (args.out / "evaluation.json").unlink(missing_ok=True)
+    if evaluation is not None:
+        atomic_write_text(args.out / "evaluation.json", json.dumps(evaluation, indent=2, allow_nan=False) + "\n")
     for line in summary_lines(result, evaluation, args.delta):
         print(line)
-    print(f"report: {args.out / 'report.md'}\nrecording: {args.out / 'recording.rrd'} (open with: rerun {args.out / 'recording.rrd'})")
+    print(f"report: {args.out / 'report.md'}\nrecording: {args.out / 'recording.rrd'} "
+          f"(open with: rerun {args.out / 'recording.rrd'})")
+    if result.interrupted:
+        print("granite demo: interrupted: the outputs hold the frames processed so far", file=sys.stderr)
+        return 130
     return 0

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from granite.errors import InputError
+from granite.evaluation.rpe import DEFAULT_RPE_DELTA
 
 DESCRIPTION = """\
 Evaluate an estimated trajectory against the ground truth, as in the paper (Sec. VI):
@@ -23,24 +24,32 @@ Evaluate an estimated trajectory against the ground truth, as in the paper (Sec.
   restarts
          number of sub-map changes (tracking failures).
 
+Sub-maps: each has its own origin and scale, so they are aligned and evaluated apart. They
+come from --submaps FILE when given ('none': one sub-map), else from the 9th column of EST
+(older granite runs), else from a submaps.csv beside EST (what `granite run` writes next to
+its 8-column trajectory.tum); without any, EST is one sub-map (the output says which).
+
 The ground truth is linearly interpolated (slerp for rotations) at the estimate's
 timestamps. Errors are in ground-truth units (metres)."""
 
 EPILOG = """\
 file formats:
   EST  TUM file: 't tx ty tz qx qy qz qw [submap]' per line (seconds, T_w_c,
-       Hamilton quaternion; optional 9th column = integer sub-map index).
+       Hamilton quaternion; optional 9th column = integer sub-map index), or a
+       granite run folder (its trajectory.tum and submaps.csv).
+  SUBMAPS  CSV 'timestamp,frame_index,submap', one row per pose of EST.
   GT   TUM file, or EuRoC ground-truth CSV ('timestamp [ns], p xyz, q wxyz, ...'),
        detected from the content. EuRoC poses are body (IMU) poses; pass --calib to
        convert them to camera poses with T_imu_cam.
 
 examples:
-  granite eval --est traj.tum --gt groundtruth.tum
+  granite eval --est runs/demo/run --gt runs/demo/dataset/groundtruth.tum
   granite eval --est traj.tum --gt mav0/state_groundtruth_estimate0/data.csv \\
-               --calib calib.json --delta 4 --json"""
+               --calib calib.json --delta 4 --json     # Δ = 4 s: the paper's MADMAX setting"""
 
 
-def _positive_seconds(text: str) -> float:
+def positive_seconds(text: str) -> float:
+    """argparse type: a positive, finite number of seconds."""
     try:
         value = float(text)
     except ValueError:
@@ -59,11 +68,15 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--est", required=True, type=Path, metavar="EST",
-                        help="estimated trajectory (TUM, optional 9th sub-map column)")
+                        help="estimated trajectory (TUM, optional 9th sub-map column) or run folder")
     parser.add_argument("--gt", required=True, type=Path, metavar="GT",
                         help="ground truth (TUM file or EuRoC ground-truth CSV)")
-    parser.add_argument("--delta", type=_positive_seconds, default=4.0, metavar="SECONDS",
-                        help="RPE time offset in seconds (default: 4, as in the paper)")
+    parser.add_argument("--submaps", metavar="SUBMAPS",
+                        help="sub-map index per pose (CSV), or 'none' to evaluate EST as one "
+                             "sub-map (default: automatic, see above)")
+    parser.add_argument("--delta", type=positive_seconds, default=DEFAULT_RPE_DELTA, metavar="SECONDS",
+                        help=f"RPE time offset in seconds (default: {DEFAULT_RPE_DELTA:g}, the same in "
+                             "every granite command; the paper used 4 for 1 Hz ground truth)")
     parser.add_argument("--align", choices=("sim3", "se3", "none"), default="sim3",
                         help="ATE alignment per sub-map (default: sim3)")
     parser.add_argument("--calib", type=Path, metavar="CALIB",
@@ -86,6 +99,7 @@ def format_table(result: dict[str, Any], est: Path, gt: Path) -> str:
     rows = [
         ("estimate", f"{est} ({r['num_poses']} poses, {r['restarts'] + 1} sub-map runs)"),
         ("ground truth", str(gt)),
+        ("sub-maps from", r.get("submaps_source", "-")),
         (f"ATE RMSE ({r['align']}, per sub-map)", _fmt(r["ate_rmse"], " m")),
         ("ATE mean / median / max",
          f"{_fmt(r['ate_mean'])} / {_fmt(r['ate_median'])} / {_fmt(r['ate_max'])} m"),
@@ -107,10 +121,10 @@ def format_table(result: dict[str, Any], est: Path, gt: Path) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from granite.evaluation import evaluate
-    from granite.io import read_calibration, read_trajectory
+    from granite.io import read_calibration, read_estimate, read_trajectory
 
     T_body_cam = read_calibration(args.calib).T_imu_cam if args.calib is not None else None
-    est = read_trajectory(args.est)
+    est, source = read_estimate(args.est, args.submaps)
     gt = read_trajectory(args.gt, T_body_cam)
     try:
         result = evaluate(est, gt, delta=args.delta, align=args.align).to_dict()
@@ -118,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
         if error.path is None:  # name the estimate in errors of the pure algorithms
             raise InputError(error.message, args.est) from None
         raise
+    result["submaps_source"] = source
     if args.json:
         result = {"estimate": str(args.est), "ground_truth": str(args.gt), **result}
         print(json.dumps(result, allow_nan=False))

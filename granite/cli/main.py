@@ -2,7 +2,8 @@
 
 Subcommands are modules of :mod:`granite.cli` listed in :data:`SUBCOMMANDS`; each provides
 ``add_parser(subparsers) -> argparse.ArgumentParser`` and ``run(args) -> int``. User errors
-(:class:`granite.errors.GraniteError`) are printed as one line on stderr with exit status 2.
+(:class:`granite.errors.GraniteError`) and bad options are printed as one line on stderr with
+exit status 2; Ctrl-C exits with 130.
 """
 
 from __future__ import annotations
@@ -22,8 +23,15 @@ from granite.errors import GraniteError  # noqa: E402
 SUBCOMMANDS: tuple[str, ...] = ("demo", "run", "eval", "view", "track")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``granite run: error: ... (see granite run --help)``."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="granite",
         description="Robust monocular visual odometry for flying robots (granite-py).",
     )

@@ -8,29 +8,51 @@ import json
 import sys
 from pathlib import Path
 
+from granite.cli.eval_cmd import positive_seconds
 from granite.errors import GraniteError
 from granite.estimator.config import VoConfig
 from granite.estimator.records import FrameRecord, write_records
-from granite.estimator.runner import run_vo, write_run
-from granite.evaluation import evaluate
-from granite.io import atomic_write_text, open_dataset
+from granite.estimator.runner import TRAJECTORY_FORMATS, RunResult, run_vo, summary_dict, write_run
+from granite.evaluation import DEFAULT_RPE_DELTA, evaluate
+from granite.io import atomic_write_text, check_writable, open_dataset
 
-DESCRIPTION = """\
+DESCRIPTION = f"""\
 Run the monocular visual odometry over a dataset (EuRoC/ASL, TUM RGB-D, KITTI odometry or a
 granite-sim test-bench folder) and write the run folder OUT:
 
-  trajectory.tum    T_w_c of every frame, TUM text + 9th column = sub-map index
-  diagnostics.csv   per frame: sub-map, state, tracks, finite/infinite landmarks, keyframe,
-                    negative entropy, processing time
+  trajectory.tum    T_w_c of every estimated frame, plain 8-column TUM (evo reads it);
+                    skipped (unreadable, blank) frames are left out
+  submaps.csv       timestamp, frame index, sub-map of every pose of trajectory.tum
+  trajectory.kitti  with --format kitti: the same poses as KITTI rows (3x4, row-major)
+  diagnostics.csv   per frame (skipped ones included): sub-map, state, tracks,
+                    finite/infinite landmarks, keyframe, negative entropy, time, warnings
   keyframes.csv     keyframes (timestamp, frame index, sub-map)
   landmarks.npz     per-frame tracks with landmark inverse distances (for granite view)
   config.toml       the exact configuration used
-  summary.json      counts and timing
-  evaluation.json   ATE / RPE / tracking percentage / restarts, when ground truth exists
+  summary.json      counts, skipped frames by reason, warnings by kind, timing
+  evaluation.json   with ground truth: ATE / RPE / tracking percentage / restarts
+                    (not written when the evaluation fails; summary.json says why)
+  *.png, report.md  plots (trajectory, translation error and scale error need ground
+                    truth; points always) and a report showing them with the metrics
 
-The configuration is a TOML file (see configs/mono_default.toml); missing keys take the
-reference monocular defaults.
+The configuration is a TOML file: configs/mono_default.toml documents the defaults (the
+reference's values plus our additions, marked), configs/reference.toml is the reference
+configuration. The ablation switches apply to either. The RPE uses Δ = {DEFAULT_RPE_DELTA:g} s
+unless --delta says otherwise (the same default in every granite command). Bad input (options,
+configuration, dataset, an output folder that cannot be written) is one error line and exit
+status 2 before any work; Ctrl-C writes the frames processed so far and exits with 130.
 """
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1: {text!r}")
+    return value
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -40,11 +62,16 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("dataset", type=Path, help="dataset folder")
     p.add_argument("--out", type=Path, required=True, help="run folder to write")
-    p.add_argument("--config", type=Path, help="VO configuration (TOML)")
+    p.add_argument("--config", type=Path, help="VO configuration (TOML; default: the built-in defaults "
+                   "= configs/mono_default.toml; configs/reference.toml = the reference's)")
     p.add_argument("--calib", type=Path, help="Basalt calib.json overriding the dataset's calibration")
-    p.add_argument("--max-frames", type=int, help="process only the first N frames")
-    p.add_argument("--delta", type=float, default=1.0,
-                   help="RPE delta in seconds for the evaluation (default: 1, for 20 Hz ground truth)")
+    p.add_argument("--max-frames", type=positive_int, metavar="N", help="process only the first N frames")
+    p.add_argument("--delta", type=positive_seconds, default=DEFAULT_RPE_DELTA, metavar="SECONDS",
+                   help=f"RPE delta in seconds for the evaluation and the scale-error plot "
+                        f"(default: {DEFAULT_RPE_DELTA:g}, as in granite eval)")
+    p.add_argument("--format", choices=TRAJECTORY_FORMATS, default="tum",
+                   help="trajectory format besides trajectory.tum (always written): kitti adds "
+                        "trajectory.kitti (default: tum only)")
     p.add_argument("--finest-level-only", action="store_true",
                    help="ablation †: detect corners on pyramid level 0 only")
     p.add_argument("--current-frame-keyframe", action="store_true",
@@ -56,7 +83,16 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+def config_name(args) -> str:
+    """How the configuration was chosen (recorded in summary.json and the report)."""
+    name = str(args.config) if getattr(args, "config", None) else "built-in defaults (configs/mono_default.toml)"
+    ablations = [s for flag, s in (("finest_level_only", "†"), ("current_frame_keyframe", "‡"))
+                 if getattr(args, flag, False)]
+    return name + (f" with ablation {' '.join(ablations)}" if ablations else "")
+
+
 def load_config(args) -> VoConfig:
+    """The configuration file (or the defaults) with the ablation switches applied."""
     config = VoConfig.load(args.config) if args.config else VoConfig()
     if args.finest_level_only:
         config = dataclasses.replace(
@@ -68,15 +104,19 @@ def load_config(args) -> VoConfig:
 
 
 def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None, spawn: bool = False,
-                delta: float = 1.0, max_frames: int | None = None, progress: bool = True):
-    """Run the VO on an opened dataset, write the run folder; returns (result, evaluation dict
-    or None)."""
+                delta: float = DEFAULT_RPE_DELTA, max_frames: int | None = None, progress: bool = True,
+                formats: tuple[str, ...] = ("tum",), config_label: str = "", report: bool = True,
+                notify=None):
+    """Run the VO on an opened dataset and write the run folder (with plots and ``report.md``
+    when ``report``). Returns (result, evaluation dict or None); a failed evaluation leaves
+    ``result.evaluation_error`` set and no ``evaluation.json``."""
     records: list[FrameRecord] = []
     view = None
     if rerun or spawn:
         from granite.visualization.run_view import RunView
 
-        view = RunView(f"granite-run-{dataset.name}", dataset.calibration, dataset.ground_truth, rerun, spawn)
+        view = RunView(f"granite-run-{dataset.name}", dataset.calibration, dataset.ground_truth, rerun, spawn,
+                       scale_delta=delta)
 
     def on_frame(frame, output):
         record = FrameRecord.from_output(frame.index, frame.timestamp, output)
@@ -84,26 +124,55 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
         if view is not None:
             view.log_frame(record, frame.image, output.diagnostics, frame.path)
 
-    result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames)
-    write_run(out, result, config, {"dataset": str(dataset.root), "format": dataset.format})
-    write_records(out / "landmarks.npz", records)
+    result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames, notify=notify)
     evaluation = None
     if dataset.ground_truth is not None:
         try:
             evaluation = evaluate(result.trajectory, dataset.ground_truth, delta=delta).to_dict()
-        except GraniteError as error:  # the run itself succeeded: keep its outputs
-            print(f"warning: evaluation skipped: {error}", file=sys.stderr)
-        else:
-            atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=2) + "\n")
+        except (GraniteError, ValueError) as error:  # the run itself succeeded: keep its outputs
+            result.evaluation_error = str(error)
+            print(f"granite: warning: evaluation failed, no evaluation.json written: {error}", file=sys.stderr)
+    extra = {"dataset": str(dataset.root), "format": dataset.format, "config": config_label or "given",
+             "rpe_delta": delta, "evaluation_error": result.evaluation_error}
+    write_run(out, result, config, extra, formats)
+    (out / "evaluation.json").unlink(missing_ok=True)
+    if evaluation is not None:
+        atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=2, allow_nan=False) + "\n")
+    write_records(out / "landmarks.npz", records)
+    if report:
+        write_run_report(out, result, dataset, evaluation, delta, config_label or "given",
+                         title=f"granite run: {dataset.name}")
     if view is not None:
         view.finish(result.trajectory)
         result.logging_startup_seconds, result.logging_seconds = view.startup_seconds, view.seconds
     return result, evaluation
 
 
+def write_run_report(out: Path, result: RunResult, dataset, evaluation: dict | None, delta: float,
+                     config_label: str, title: str, header: tuple[str, ...] = (),
+                     copies: tuple[tuple[Path, str], ...] = ()) -> None:
+    """Plots and ``report.md`` of a run folder; ``copies``: more (path, image prefix) places to
+    write the same report (e.g. the demo's top-level report, linking ``run/*.png``)."""
+    from granite.visualization.report import report_markdown, write_plots, write_report
+
+    plots = write_plots(out, result.trajectory, result.diagnostics, [t for t, _, _ in result.keyframes],
+                        dataset.ground_truth, delta)
+    header = (f"dataset: `{dataset.root}` ({len(dataset)} images, format {dataset.format})",
+              f"configuration: {config_label}", f"run folder: `{out}`", *header)
+    summary = summary_dict(result)
+    write_report(out / "report.md", report_markdown(title, header, summary, evaluation,
+                                                     result.evaluation_error, plots))
+    for path, prefix in copies:
+        write_report(path, report_markdown(title, header, summary, evaluation, result.evaluation_error,
+                                           plots, prefix))
+
+
 def summary_lines(result, evaluation: dict | None, delta: float) -> list[str]:
     lines = [f"{len(result.diagnostics)} frames, {len(result.skipped)} skipped, {result.restarts} restarts, "
              f"{len(result.keyframes)} keyframes"]
+    numerical = result.tally.numerical()
+    if numerical:
+        lines.append(f"{sum(k.count for k in numerical)} warnings of {len(numerical)} kind(s), see summary.json")
     if evaluation is not None:
         e = evaluation
         frac = e["ate_over_path_length"]
@@ -113,17 +182,35 @@ def summary_lines(result, evaluation: dict | None, delta: float) -> list[str]:
             + (f" ({100 * frac:.2f} % of {e['path_length']:.1f} m)" if frac is not None else "")
             + f", RPE({delta:g} s) {rpe}, tracking {e['tracking_percentage']:.1f} %"
         )
+    elif result.evaluation_error is not None:
+        lines.append(f"evaluation failed: {result.evaluation_error}")
     return lines
+
+
+def cli_notifier(command: str):
+    """One stderr line per first warning of a kind, above the progress bar."""
+    from tqdm import tqdm
+
+    return lambda text: tqdm.write(f"granite {command}: warning: {text}", file=sys.stderr)
+
+
+def check_outputs(args) -> None:
+    """Unwritable outputs are one error line before any work."""
+    check_writable(args.out)
+    if getattr(args, "rerun", None):
+        check_writable(args.rerun, folder=False)
 
 
 def run(args) -> int:
     config = load_config(args)
+    check_outputs(args)
     dataset = open_dataset(args.dataset, calib_path=args.calib)
     result, evaluation = perform_run(dataset, config, args.out, args.rerun, args.spawn, args.delta,
-                                     args.max_frames, progress=not args.quiet)
+                                     args.max_frames, progress=not args.quiet, formats=(args.format,),
+                                     config_label=config_name(args), notify=cli_notifier("run"))
     for line in summary_lines(result, evaluation, args.delta):
         print(line)
-    print(f"outputs: {args.out}")
+    print(f"outputs: {args.out} (report: {args.out / 'report.md'})")
     if result.interrupted:
         print("interrupted: the outputs hold the frames processed so far", file=sys.stderr)
         return 130

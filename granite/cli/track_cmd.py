@@ -69,10 +69,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def load_config(args: argparse.Namespace):
-    """The OpticalFlowConfig from --config and the command-line overrides."""
-    from granite.optical_flow import OpticalFlowConfig
+    """The OpticalFlowConfig from --config (a VO configuration, or a bare [optical_flow] table)
+    and the command-line overrides, checked by the VO configuration's validator."""
+    from granite.estimator.config import VoConfig
 
-    values: dict[str, Any] = {}
+    data: dict[str, Any] = {}
     if args.config is not None:
         try:
             data = tomllib.loads(args.config.read_text(encoding="utf-8"))
@@ -80,31 +81,33 @@ def load_config(args: argparse.Namespace):
             raise InputError("config file not found", args.config) from None
         except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
             raise InputError(f"cannot read config: {error}", args.config) from None
-        values = dict(data.get("optical_flow", data))
-    if args.levels is not None:
-        values["levels"] = args.levels
-    if args.grid_size is not None:
-        values["grid_size"] = args.grid_size
-    if args.finest_level_only:
-        values["detect_all_levels"] = False
-    try:
-        return OpticalFlowConfig.from_dict(values)
-    except ConfigError as error:
-        if args.config is not None:
+        if not any(isinstance(v, dict) for v in data.values()):
+            data = {"optical_flow": data}  # a bare table of optical-flow keys
+        try:
+            VoConfig.from_dict(data)
+        except ConfigError as error:
             raise ConfigError(f"{args.config}: {error}") from None
-        raise
+    values = dict(data.get("optical_flow", {}))
+    overrides = {"levels": args.levels, "grid_size": args.grid_size,
+                 "detect_all_levels": False if args.finest_level_only else None}
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return VoConfig.from_dict({"optical_flow": values}).optical_flow
+    except ConfigError as error:
+        raise ConfigError(f"command line: {error}") from None
 
 
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from granite.io import open_dataset
+    from granite.io import check_writable, open_dataset
     from granite.optical_flow import FrameRejectedWarning, FrameToFrameOpticalFlow
 
     suffix = args.out.suffix.lower()
     if suffix not in _FORMATS:
         raise InputError(f"unknown output format {args.out.suffix!r}; use .csv or .npz", args.out)
     config = load_config(args)
+    check_writable(args.out, folder=False)
     dataset = open_dataset(args.dataset, calib_path=args.calib)
     size = None
     if dataset.calibration is not None:

@@ -9,7 +9,7 @@ from pathlib import Path
 from granite.errors import InputError
 from granite.estimator.diagnostics import read_diagnostics
 from granite.estimator.records import read_records
-from granite.io import open_dataset, read_tum
+from granite.io import check_writable, open_dataset, read_estimate
 from granite.visualization.run_view import RunView
 
 
@@ -38,12 +38,16 @@ def run(args) -> int:
     except json.JSONDecodeError as error:
         raise InputError(f"malformed JSON ({error})", summary_path) from None
     dataset = open_dataset(args.dataset or summary.get("dataset", ""))
-    trajectory = read_tum(run_dir / "trajectory.tum")
+    trajectory, _ = read_estimate(run_dir)  # with the sub-maps of submaps.csv (or the 9th column)
     diagnostics = read_diagnostics(run_dir / "diagnostics.csv")
     records = read_records(run_dir / "landmarks.npz")
-    if not (len(trajectory) == len(diagnostics) == len(records)):
+    # Skipped frames have a diagnostics row and a record but no pose (older runs: a pose too).
+    posed = [d for d in diagnostics if d.state != "skipped"]
+    if len(records) != len(diagnostics) or len(trajectory) not in (len(posed), len(diagnostics)):
         raise InputError("trajectory, diagnostics and records disagree on the number of frames", run_dir)
     rrd = None if args.spawn and not args.rerun else (args.rerun or run_dir / "recording.rrd")
+    if rrd is not None:
+        check_writable(rrd, folder=False)
     view = RunView(f"granite-view-{dataset.name}", dataset.calibration, dataset.ground_truth, rrd, args.spawn)
     for record, diag in zip(records, diagnostics):
         frame = dataset.frame(record.index)

@@ -3,14 +3,27 @@
 ``[optical_flow]`` -> :class:`granite.optical_flow.OpticalFlowConfig`,
 ``[backend]`` -> :class:`granite.backend.config.BackendConfig`,
 ``[initialization]`` -> :class:`granite.estimator.initialization.InitializationConfig`,
-``[estimator]`` -> :class:`EstimatorConfig`. Missing keys take the reference monocular defaults;
-unknown tables or keys are errors. ``configs/mono_default.toml`` documents every key.
+``[estimator]`` -> :class:`EstimatorConfig`. Missing keys take the defaults: the reference
+monocular configuration, except the keys whose metadata says ``origin="ours"``.
+``configs/reference.toml`` is exactly the reference configuration (:meth:`VoConfig.reference`),
+``configs/mono_default.toml`` documents every key with its default.
+
+Validation (one validator for every table, :mod:`granite.config_schema`): a key's type is its
+dataclass field's annotation, its allowed values come from the field's metadata
+(:func:`granite.config_schema.spec_field`) or, for the dataclasses of other packages that carry
+none, from :data:`SECTION_LIMITS`. Every problem is one :class:`ConfigError` line
+``[table] key: message`` (``file: `` in front when read from a file); unknown tables and keys
+are errors. A new key needs only its field and its range (field metadata, or an entry of
+:data:`SECTION_LIMITS`).
+
+Metadata beyond the ranges: ``origin="ours"`` marks a key that is not a setting of the
+reference implementation (without it: the reference's setting, at the reference's value), and
+``reference`` is the value that reproduces the reference's behaviour where our default differs.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -18,6 +31,14 @@ from pathlib import Path
 from typing import Any
 
 from granite.backend.config import BackendConfig
+from granite.config_schema import (
+    check_table,
+    check_value,
+    field_types,
+    has_limits,
+    limits,
+    spec_field,
+)
 from granite.errors import ConfigError
 from granite.estimator.initialization import InitializationConfig
 from granite.optical_flow import OpticalFlowConfig
@@ -25,7 +46,7 @@ from granite.optical_flow import OpticalFlowConfig
 
 @dataclass(frozen=True)
 class EstimatorConfig:
-    """Pipeline settings (paper Sec. IV-B..D; reference defaults).
+    """Pipeline settings (paper Sec. IV-B..D; reference defaults except the three marked).
 
     Attributes:
         keyframe_entropy_fraction: a keyframe is taken when the negative entropy of the newest
@@ -53,83 +74,205 @@ class EstimatorConfig:
             depth, the others by the infinite homography), then as the reference does.
     """
 
-    keyframe_entropy_fraction: float = 0.995
-    keyframe_min_connected: int = 20
-    min_frames_after_keyframe: int = 3
-    previous_frame_as_keyframe: bool = True
-    min_finite_observations: int = 5
-    failure_min_connected: int = 7
-    min_triangulation_distance: float = 0.03
-    entropy_iteration: int = 4
-    keyframe_extra_iterations: int = 2
-    constant_velocity: bool = True
-    motion_guided_tracking: bool = True
-    reinit_keeps_scale: bool = True
+    keyframe_entropy_fraction: float = spec_field(0.995, 0.0, 1.0, lo_open=True)
+    keyframe_min_connected: int = spec_field(20, 0, 100000)
+    min_frames_after_keyframe: int = spec_field(3, 0, 100000)
+    previous_frame_as_keyframe: bool = spec_field(True)
+    min_finite_observations: int = spec_field(5, 0, 100000)
+    failure_min_connected: int = spec_field(7, 0, 100000)
+    min_triangulation_distance: float = spec_field(0.03, 0.0, 1e6)
+    entropy_iteration: int = spec_field(4, 1, 1000, doc="at most [backend] max_iterations")
+    keyframe_extra_iterations: int = spec_field(2, 0, 1000)
+    constant_velocity: bool = spec_field(True, origin="ours", reference=False)
+    motion_guided_tracking: bool = spec_field(True, origin="ours", reference=False)
+    reinit_keeps_scale: bool = spec_field(True, origin="ours", reference=False)
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.keyframe_entropy_fraction <= 1.0:
-            raise ConfigError("estimator: keyframe_entropy_fraction must be in (0, 1]")
-        for name in ("keyframe_min_connected", "min_frames_after_keyframe", "min_finite_observations",
-                     "failure_min_connected", "entropy_iteration", "keyframe_extra_iterations"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ConfigError(f"estimator: {name} must be an integer >= 0, got {value!r}")
-        if not (math.isfinite(self.min_triangulation_distance) and self.min_triangulation_distance >= 0):
-            raise ConfigError("estimator: min_triangulation_distance must be >= 0")
-        for name in ("previous_frame_as_keyframe", "constant_velocity", "motion_guided_tracking",
-                     "reinit_keeps_scale"):
-            if not isinstance(getattr(self, name), bool):
-                raise ConfigError(f"estimator: {name} must be true or false")
+        validate_section(self, "estimator")
 
 
-def _from_table(cls, table: Mapping[str, Any], section: str):
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(table) - known)
-    if unknown:
-        raise ConfigError(f"[{section}]: unknown key(s) {', '.join(unknown)}")
+#: Ranges of the keys of the tables whose dataclasses (owned by other packages) carry no
+#: validation metadata. A field's own metadata, when it has a range, takes precedence.
+SECTION_LIMITS: dict[str, dict[str, dict[str, Any]]] = {
+    "optical_flow": {
+        "levels": limits(1, 12),
+        "grid_size": limits(4, 100000),
+        "detect_all_levels": limits(),
+        "pattern_scale": limits(0.0, 4.0, lo_open=True),
+        "iterations": limits(1, 1000),
+        "fb_threshold_sq": limits(0.0, 1e4, lo_open=True),
+        "fast_threshold": limits(1, 255),
+        "fast_min_threshold": limits(1, 255, doc="at most fast_threshold"),
+        "border": limits(3, 100000),
+        "margin": limits(2.0, 1e4),
+        "presmooth_sigma": limits(0.0, 5.0, origin="ours", doc="0 disables (the reference)"),
+        "retry_min_flow": limits(0.0, 1e4, origin="ours", reference=0.0, doc="0 disables"),
+        "guess_min_zncc": limits(-1.0, 1.0, origin="ours", reference=-1.0,
+                                 doc="-1 disables; used only by motion-guided tracking"),
+    },
+    "backend": {
+        "obs_std_dev": limits(0.0, 1e4, lo_open=True),
+        "huber_threshold": limits(0.0, 1e6, lo_open=True),
+        "infinite_obs_factor": limits(0.0, 1e6),
+        "no_motion_weight": limits(0.0, 1e20),
+        "initial_pose_weight": limits(0.0, 1e20),
+        "scale_fix_weight": limits(0.0, 1e20),
+        "max_inv_dist": limits(0.0, 1e6, lo_open=True),
+        "max_iterations": limits(1, 1000),
+        "step_tolerance": limits(0.0, 1e3),
+        "outlier_threshold": limits(0.0, 1e6, lo_open=True),
+        "landmark_damping": limits(0.0, 1e6, origin="ours", doc="numerical: damps the step only"),
+        "use_lm": limits(),
+        "lm_lambda_init": limits(0.0, 1e20, lo_open=True, origin="ours"),
+        "lm_lambda_min": limits(0.0, 1e20, lo_open=True, origin="ours"),
+        "lm_lambda_max": limits(0.0, 1e20, lo_open=True, origin="ours"),
+        "max_frames": limits(1, 1000),
+        "max_keyframes": limits(2, 1000),
+    },
+    "initialization": {
+        "min_inliers": limits(5, 1000000),
+        "min_parallax_deg": limits(0.0, 90.0, hi_open=True),
+        "mean_distance": limits(0.0, 1e9, lo_open=True),
+        "ransac_threshold_px": limits(0.0, 1e4, lo_open=True, origin="ours"),
+        "ransac_confidence": limits(0.0, 1.0, lo_open=True, hi_open=True, origin="ours"),
+        "min_bearing_z": limits(0.0, 1.0, hi_open=True, origin="ours"),
+        "seed": limits(0, 2**31 - 1, origin="ours"),
+    },
+}
+
+
+def field_limits(section: str, f: dataclasses.Field) -> dict[str, Any]:
+    """Validation metadata of key ``f`` of table ``section``: the field's own when it has a
+    range, choices or an origin, else its entry of :data:`SECTION_LIMITS` (else none)."""
+    own = dict(f.metadata)
+    if has_limits(own) or "origin" in own:
+        return own
+    return dict(SECTION_LIMITS.get(section, {}).get(f.name, own))
+
+
+def _error(message: str) -> ConfigError:
+    return ConfigError(message)
+
+
+def _where(section: str, key: str) -> str:
+    return f"[{section}] {key}:"
+
+
+def validate_section(instance: Any, section: str) -> None:
+    """Check every field of a table's dataclass instance (type and range); ints given for
+    ``float`` keys become floats. Raises ``ConfigError("[section] key: must be ...")``."""
+    types = field_types(type(instance))
+    for f in dataclasses.fields(instance):
+        current = getattr(instance, f.name)
+        value = check_value(current, types[f.name], field_limits(section, f), _where(section, f.name), _error)
+        if value is not current:
+            object.__setattr__(instance, f.name, value)
+
+
+def _cross_checks(values: Mapping[str, Mapping[str, Any]]) -> None:
+    """Constraints between keys (``values[table][key]``: every key's effective value), in the
+    same one-line form."""
+    of, be, est = values["optical_flow"], values["backend"], values["estimator"]
+    checks = [
+        (of["fast_min_threshold"] <= of["fast_threshold"], "optical_flow", "fast_min_threshold",
+         f"must not exceed fast_threshold ({of['fast_threshold']})"),
+        (be["lm_lambda_min"] <= be["lm_lambda_init"] <= be["lm_lambda_max"], "backend", "lm_lambda_init",
+         f"must be in [lm_lambda_min, lm_lambda_max] = [{be['lm_lambda_min']:g}, {be['lm_lambda_max']:g}]"),
+        (est["entropy_iteration"] <= be["max_iterations"], "estimator", "entropy_iteration",
+         f"must not exceed [backend] max_iterations ({be['max_iterations']})"),
+    ]
+    for ok, section, key, message in checks:
+        if not ok:
+            raise ConfigError(f"{_where(section, key)} {message}, got {values[section][key]!r}")
+
+
+def _construct(cls: type, kwargs: Mapping[str, Any], section: str):
+    """``cls(**kwargs)``; a check of the class itself (one the ranges here should already
+    cover) still becomes a ``[section]`` line."""
     try:
-        return cls(**dict(table))
-    except TypeError as error:
-        raise ConfigError(f"[{section}]: {error}") from None
+        return cls(**kwargs)
+    except (ConfigError, TypeError, ValueError) as error:
+        raise ConfigError(f"[{section}] {error}") from None
 
 
 @dataclass(frozen=True)
 class VoConfig:
-    """Everything a run needs; saved beside the run's outputs as ``config.toml``."""
+    """Everything a run needs; saved beside the run's outputs as ``config.toml``.
+
+    Constructing one validates every table (:func:`validate_section`) and the constraints
+    between keys, so ``dataclasses.replace`` cannot make an invalid configuration either.
+    """
 
     optical_flow: OpticalFlowConfig = field(default_factory=OpticalFlowConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
     initialization: InitializationConfig = field(default_factory=InitializationConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
 
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            validate_section(getattr(self, f.name), f.name)
+        _cross_checks({f.name: dataclasses.asdict(getattr(self, f.name)) for f in dataclasses.fields(self)})
+
+    @classmethod
+    def sections(cls) -> dict[str, type]:
+        """Table name -> the dataclass of the table."""
+        return {f.name: type(f.default_factory()) for f in dataclasses.fields(cls)}
+
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> VoConfig:
-        sections = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - set(sections))
-        if unknown:
-            raise ConfigError(f"unknown table(s) {', '.join(unknown)}; known: {', '.join(sections)}")
-        kwargs = {}
-        for name in sections:
+        """From decoded TOML; unknown tables or keys and bad values raise ConfigError."""
+        sections = cls.sections()
+        for name, value in data.items():
+            if name not in sections:
+                if isinstance(value, Mapping):
+                    raise ConfigError(f"[{name}]: unknown table (known tables: {', '.join(sections)})")
+                raise ConfigError(f"{name}: a key outside any table (keys belong in one of the "
+                                  f"tables {', '.join(sections)})")
+        given = {}
+        for name, section_cls in sections.items():
             table = data.get(name, {})
-            if not isinstance(table, Mapping):
-                raise ConfigError(f"[{name}] must be a table")
-            default = sections[name].default_factory()
-            kwargs[name] = _from_table(type(default), table, name)
-        return cls(**kwargs)
+            given[name] = check_table(
+                section_cls, dict(table) if isinstance(table, Mapping) else table, _error,
+                where=lambda key, name=name: _where(name, key),
+                unknown=lambda key, known, name=name: f"{_where(name, key)} unknown key (known keys: {known})",
+                name=name, meta=lambda f, name=name: field_limits(name, f),
+            )
+        _cross_checks({name: {**dataclasses.asdict(section_cls()), **given[name]}
+                       for name, section_cls in sections.items()})
+        return cls(**{name: _construct(section_cls, given[name], name) for name, section_cls in sections.items()})
 
     @classmethod
     def load(cls, path: str | Path) -> VoConfig:
+        """Read and validate a TOML file; every error names the file."""
         path = Path(path)
         try:
-            data = tomllib.loads(path.read_text())
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise ConfigError(f"{path}: configuration file not found") from None
+        except IsADirectoryError:
+            raise ConfigError(f"{path}: is a folder, not a configuration file") from None
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
             raise ConfigError(f"{path}: not valid TOML ({error})") from None
+        except OSError as error:
+            raise ConfigError(f"{path}: cannot read the configuration ({error.strerror})") from None
         try:
             return cls.from_dict(data)
         except ConfigError as error:
             raise ConfigError(f"{path}: {error}") from None
+
+    @classmethod
+    def reference(cls) -> VoConfig:
+        """The reference configuration: the defaults with every key that has a ``reference``
+        value set to it (``configs/reference.toml``)."""
+        changes = {}
+        for name, section_cls in cls.sections().items():
+            values = {}
+            for f in dataclasses.fields(section_cls):
+                meta = field_limits(name, f)
+                if "reference" in meta:
+                    values[f.name] = meta["reference"]
+            changes[name] = section_cls(**values)
+        return cls(**changes)
 
     def to_toml(self) -> str:
         """The complete configuration as TOML (every key, so a run can be repeated exactly)."""

@@ -5,20 +5,26 @@ One row per processed frame (skipped frames included). Columns:
 =====================  =====================================================================
 ``timestamp``          frame time, seconds
 ``frame_index``        index of the frame in the dataset
-``submap``             sub-map index (increments after every restart)
-``state``              ``skipped`` (image missing/corrupt), ``init`` (no map yet, rotation-only
+``submap``             sub-map index (increments after every restart, and after a
+                       re-initialisation that does not keep the scale)
+``state``              ``skipped`` (image missing/corrupt, or rejected by the frontend: no
+                       pose, not in ``trajectory.tum``), ``init`` (no map yet, rotation-only
                        tracking), ``tracking``, ``reinit`` (the map, lost with every point at
-                       infinity, was initialised again in this frame; same sub-map),
-                       ``lost`` (tracking failure: restart follows)
+                       infinity, was initialised again in this frame), ``lost`` (tracking
+                       failure: restart follows)
 ``tracked_points``     optical-flow tracks in this frame
 ``finite_landmarks``   connected landmarks with inverse distance > 0
 ``infinite_landmarks`` connected landmarks at infinity (d = 0)
 ``keyframe``           1 when this frame became a keyframe (decided one frame later, Sec. IV-D)
 ``negative_entropy``   ln det of the pose information (Eq. 10); empty when not computed
 ``processing_ms``      wall-clock time spent on this frame
+``warnings``           Python warnings (e.g. numpy's RuntimeWarning) raised while processing
+                       it; each kind is listed once in ``summary.json``
 =====================  =====================================================================
 
-Unavailable values are written as empty fields, never as NaN.
+Unavailable values are written as empty fields, never as NaN. Reading derives the columns and
+their types from :class:`FrameDiagnostics`: a new field needs nothing else; files written
+before a field with a default existed read with that default.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from __future__ import annotations
 import csv
 import io
 import math
-from dataclasses import astuple, dataclass, fields
+from dataclasses import MISSING, astuple, dataclass, fields
 from pathlib import Path
 
 from granite.errors import InputError
@@ -47,9 +53,13 @@ class FrameDiagnostics:
     keyframe: bool = False
     negative_entropy: float | None = None
     processing_ms: float = 0.0
+    warnings: int = 0
 
 
 COLUMNS = tuple(f.name for f in fields(FrameDiagnostics))
+#: Columns every diagnostics file has (the fields without a default).
+REQUIRED_COLUMNS = tuple(f.name for f in fields(FrameDiagnostics)
+                         if f.default is MISSING and f.default_factory is MISSING)
 
 
 def _format(value) -> str:
@@ -78,28 +88,53 @@ def write_diagnostics(path: str | Path, rows: list[FrameDiagnostics]) -> None:
     atomic_write_text(path, diagnostics_to_csv(rows))
 
 
+def _parser(annotation: str):
+    """Text -> value for a field annotation (``X | None``: empty text gives None)."""
+    base = annotation.replace("| None", "").replace("None |", "").strip()
+    if base == "bool":
+        def parse_bool(text: str) -> bool:
+            if text not in ("0", "1"):
+                raise ValueError(f"expected 0 or 1, got {text!r}")
+            return text == "1"
+        return parse_bool
+    convert = {"float": float, "int": int, "str": str}[base]
+    if "None" in annotation:
+        return lambda text: convert(text) if text != "" else None
+    return convert
+
+
 def read_diagnostics(path: str | Path) -> list[FrameDiagnostics]:
-    """Read a diagnostics CSV written by :func:`write_diagnostics`."""
+    """Read a diagnostics CSV written by :func:`write_diagnostics` (any version: columns are
+    matched by name; missing optional columns take their default)."""
     path = Path(path)
     if not path.is_file():
         raise InputError("diagnostics file not found", path)
+    parsers = {f.name: _parser(str(f.type)) for f in fields(FrameDiagnostics)}
     rows: list[FrameDiagnostics] = []
     with path.open(newline="") as handle:
         reader = csv.reader(handle)
         header = next(reader, None)
-        if header is None or tuple(header) != COLUMNS:
-            raise InputError(f"expected the header {','.join(COLUMNS)}", path, 1)
+        if header is None:
+            raise InputError("empty diagnostics file", path)
+        unknown = [c for c in header if c not in parsers]
+        missing = [c for c in REQUIRED_COLUMNS if c not in header]
+        if unknown or missing or len(set(header)) != len(header):
+            problem = (f"unknown column(s) {', '.join(unknown)}" if unknown else
+                       f"missing column(s) {', '.join(missing)}" if missing else "repeated columns")
+            raise InputError(f"not a diagnostics header ({problem}); expected {','.join(COLUMNS)}", path, 1)
         for line, values in enumerate(reader, start=2):
+            if len(values) != len(header):
+                raise InputError(f"expected {len(header)} fields, got {len(values)}", path, line)
             try:
-                t, idx, sub, state, tracked, fin, inf, kf, ent, ms = values
-                rows.append(
-                    FrameDiagnostics(
-                        float(t), int(idx), int(sub), state, int(tracked), int(fin), int(inf),
-                        kf == "1", float(ent) if ent else None, float(ms),
-                    )
-                )
-            except ValueError as error:
+                kwargs = {name: parsers[name](text) for name, text in zip(header, values)}
+            except (ValueError, KeyError) as error:
                 raise InputError(f"malformed row ({error})", path, line) from None
-            if state not in FRAME_STATES:
-                raise InputError(f"unknown state {state!r}", path, line)
+            if kwargs["state"] not in FRAME_STATES:
+                raise InputError(f"unknown state {kwargs['state']!r}", path, line)
+            rows.append(FrameDiagnostics(**kwargs))
     return rows
+
+
+def diagnostics_columns(rows: list[FrameDiagnostics]) -> dict[str, list]:
+    """Column name -> values (``None`` where unavailable), for plotting."""
+    return {name: [getattr(r, name) for r in rows] for name in COLUMNS}

@@ -6,12 +6,13 @@ time (Fig. 4)."""
 from granite.evaluation.association import associate
 from granite.evaluation.ate import ALIGNMENTS, AteResult, align_poses, ate
 from granite.evaluation.evaluate import EvaluationResult, evaluate, overlap_path_length
-from granite.evaluation.rpe import RpeResult, rpe
+from granite.evaluation.rpe import DEFAULT_RPE_DELTA, RpeResult, rpe
 from granite.evaluation.scale_drift import ScaleErrorSeries, relative_scale_error
 from granite.evaluation.tracking import longest_run_duration, restart_count, tracking_percentage
 
 __all__ = [
     "ALIGNMENTS",
+    "DEFAULT_RPE_DELTA",
     "AteResult",
     "EvaluationResult",
     "RpeResult",

@@ -10,7 +10,7 @@ import numpy as np
 
 from granite.evaluation.ate import AteResult, ate
 from granite.evaluation.association import check_nonempty
-from granite.evaluation.rpe import RpeResult, rpe
+from granite.evaluation.rpe import DEFAULT_RPE_DELTA, RpeResult, rpe
 from granite.evaluation.tracking import restart_count, tracking_percentage
 from granite.geometry import interpolate_poses
 from granite.trajectory import Trajectory
@@ -73,7 +73,7 @@ class EvaluationResult:
 
 
 def evaluate(
-    est: Trajectory, gt: Trajectory, delta: float = 4.0, align: str = "sim3"
+    est: Trajectory, gt: Trajectory, delta: float = DEFAULT_RPE_DELTA, align: str = "sim3"
 ) -> EvaluationResult:
     """ATE (``align`` per sub-map), RPE over ``delta`` s, tracking percentage (over the
     estimate's time span), restart count, and the ground-truth path length over the overlap."""

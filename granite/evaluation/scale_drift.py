@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from granite.evaluation.ate import ate
-from granite.evaluation.rpe import rpe
+from granite.evaluation.rpe import DEFAULT_RPE_DELTA, rpe
 from granite.geometry import interpolate_poses
 from granite.trajectory import Trajectory
 
@@ -42,7 +42,7 @@ class ScaleErrorSeries:
 def relative_scale_error(
     est: Trajectory,
     gt: Trajectory,
-    delta: float = 1.0,
+    delta: float = DEFAULT_RPE_DELTA,
     align_scales: dict[int, float] | None = None,
     min_motion: float = 0.1,
 ) -> ScaleErrorSeries:

@@ -5,7 +5,7 @@ Every reader validates its input and raises :class:`granite.errors.InputError` n
 file and, where it applies, the 1-based line. Every writer is atomic (:mod:`.atomic`).
 """
 
-from granite.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from granite.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text, check_writable
 from granite.io.calibration import (
     CAMERA_PARAMS,
     Calibration,
@@ -26,7 +26,14 @@ from granite.io.euroc import (
     write_sensor_yaml,
 )
 from granite.io.images import read_image
-from granite.io.kitti import read_kitti_intrinsics, read_kitti_poses, read_kitti_times
+from granite.io.kitti import (
+    format_kitti_poses,
+    read_kitti_intrinsics,
+    read_kitti_poses,
+    read_kitti_times,
+    write_kitti_poses,
+)
+from granite.io.run_folder import attach_submaps, read_estimate, read_submaps
 from granite.io.trajectory_file import detect_trajectory_format, read_trajectory
 from granite.io.tum import format_tum, parse_tum, read_tum, write_tum
 from granite.io.tum_rgbd import read_tum_rgbd_list
@@ -39,15 +46,19 @@ __all__ = [
     "Frame",
     "SensorInfo",
     "atomic_path",
+    "attach_submaps",
     "atomic_write_bytes",
     "atomic_write_text",
+    "check_writable",
     "detect_trajectory_format",
+    "format_kitti_poses",
     "format_tum",
     "ns_from_seconds",
     "open_dataset",
     "parse_calibration",
     "parse_tum",
     "read_calibration",
+    "read_estimate",
     "read_euroc_groundtruth",
     "read_euroc_image_list",
     "read_image",
@@ -55,6 +66,7 @@ __all__ = [
     "read_kitti_poses",
     "read_kitti_times",
     "read_sensor_yaml",
+    "read_submaps",
     "read_trajectory",
     "read_tum",
     "read_tum_rgbd_list",
@@ -62,6 +74,7 @@ __all__ = [
     "write_calibration",
     "write_euroc_groundtruth",
     "write_euroc_image_list",
+    "write_kitti_poses",
     "write_sensor_yaml",
     "write_tum",
 ]

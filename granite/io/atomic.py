@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -56,3 +57,29 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
 def atomic_write_text(path: str | Path, text: str) -> None:
     """Atomically replace ``path`` by ``text`` encoded as UTF-8 (newlines kept as given)."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def check_writable(path: str | Path, folder: bool = True) -> None:
+    """Fail early, before any work, when ``path`` cannot be written: raises
+    :class:`granite.errors.InputError` naming it. ``folder``: ``path`` is a folder to create or
+    fill (else a file to create or replace). Nothing is created: the nearest existing ancestor
+    must be a folder in which a probe file can be made (and is removed again)."""
+    from granite.errors import InputError
+
+    path = Path(path)
+    if path.exists():
+        if folder and not path.is_dir():
+            raise InputError("exists and is not a folder", path)
+        if not folder and path.is_dir():
+            raise InputError("is a folder, expected a file name", path)
+    probe_in = path if folder and path.is_dir() else path.parent
+    while not probe_in.exists() and probe_in != probe_in.parent:
+        probe_in = probe_in.parent
+    if not probe_in.is_dir():
+        raise InputError(f"cannot be created: {probe_in} is not a folder", path)
+    try:
+        fd, name = tempfile.mkstemp(prefix=".granite-write-test-", dir=probe_in)
+        os.close(fd)
+        os.unlink(name)
+    except OSError as error:
+        raise InputError(f"cannot be written ({error.strerror or error} in {probe_in})", path) from None

@@ -15,7 +15,8 @@ import numpy as np
 
 from granite.errors import InputError
 from granite.io._poses import orthonormalise
-from granite.io._text import check_increasing, data_lines, parse_float, parse_row, read_text
+from granite.io._text import check_increasing, data_lines, format_float, parse_float, parse_row, read_text
+from granite.io.atomic import atomic_write_text
 from granite.trajectory import Trajectory
 
 
@@ -76,3 +77,15 @@ def read_kitti_poses(path: str | Path, timestamps: np.ndarray) -> Trajectory:
     if len(poses) != len(timestamps):
         raise InputError(f"{len(poses)} poses but {len(timestamps)} timestamps in times.txt", p)
     return Trajectory(np.asarray(timestamps, dtype=np.float64), np.array(poses))
+
+
+def format_kitti_poses(traj: Trajectory) -> str:
+    """KITTI odometry pose text of ``traj``: per pose one row of 12 numbers, the row-major 3x4
+    ``T_w_c`` (full float precision; no timestamps, no header)."""
+    rows = [" ".join(format_float(v) for v in T[:3].reshape(-1)) for T in traj.poses]
+    return "\n".join(rows) + ("\n" if rows else "")
+
+
+def write_kitti_poses(path: str | Path, traj: Trajectory) -> None:
+    """Atomically write ``traj`` as a KITTI odometry pose file (:func:`format_kitti_poses`)."""
+    atomic_write_text(path, format_kitti_poses(traj))

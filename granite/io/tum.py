@@ -2,7 +2,7 @@
 
 ``t`` in seconds, position in metres (or map units), Hamilton quaternion ``qx qy qz qw`` of
 ``T_w_c``. An optional 9th integer column is the sub-map index (granite extension; evo and
-other tools accept only the 8-column form). Rows are whitespace separated; ``#`` comment
+other tools accept only the 8-column form, which ``granite run`` writes). Rows are whitespace separated; ``#`` comment
 lines and blank lines are skipped. All rows must have the same number of columns.
 """
 
@@ -75,19 +75,21 @@ def read_tum(path: str | Path) -> Trajectory:
     return parse_tum(read_text(path, "trajectory file"), path)
 
 
-def format_tum(traj: Trajectory, header: bool = True) -> str:
-    """TUM text of ``traj`` at full float precision; a 9th column when ``traj.submap`` is set."""
+def format_tum(traj: Trajectory, header: bool = True, submap_column: bool = True) -> str:
+    """TUM text of ``traj`` at full float precision; a 9th column when ``traj.submap`` is set
+    and ``submap_column`` is true (``False``: the plain 8-column form that evo reads)."""
     positions, quats = pq_from_poses(traj.poses)
-    rows = [HEADER + (" submap" if traj.submap is not None else "")] if header else []
+    with_submap = submap_column and traj.submap is not None
+    rows = [HEADER + (" submap" if with_submap else "")] if header else []
     for i in range(len(traj)):
         values = [traj.timestamps[i], *positions[i], *quats[i]]
         row = " ".join(format_float(v) for v in values)
-        if traj.submap is not None:
+        if with_submap:
             row += f" {int(traj.submap[i])}"
         rows.append(row)
     return "\n".join(rows) + "\n"
 
 
-def write_tum(path: str | Path, traj: Trajectory, header: bool = True) -> None:
+def write_tum(path: str | Path, traj: Trajectory, header: bool = True, submap_column: bool = True) -> None:
     """Atomically write ``traj`` as a TUM file (see :func:`format_tum`)."""
-    atomic_write_text(path, format_tum(traj, header))
+    atomic_write_text(path, format_tum(traj, header, submap_column))
