@@ -26,6 +26,7 @@ from granite.estimator.diagnostics import FrameDiagnostics
 from granite.estimator.initialization import initialize_two_view
 from granite.estimator.keyframes import EntropyKeyframeSelector
 from granite.estimator.triangulation import triangulate_bearings
+from granite.estimator.window_policy import frames_to_marginalize
 from granite.geometry import se3_exp, se3_inverse, se3_log
 from granite.optical_flow import FrameToFrameOpticalFlow, OpticalFlowResult
 from granite.optical_flow.prediction import predict_positions
@@ -367,7 +368,7 @@ class MonocularVO:
             state = "lost"
             self._restart()
         else:
-            marg = win.select_frames_to_marginalize()
+            marg = frames_to_marginalize(win, self.config.backend)
             if marg:
                 win.marginalize(marg)
                 for f in marg:
