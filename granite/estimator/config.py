@@ -40,14 +40,21 @@ class EstimatorConfig:
         min_triangulation_distance: a new landmark whose best baseline is shorter (map units)
             is inserted at infinity (d = 0).
         entropy_iteration: Gauss-Newton iteration after which the keyframe decision is taken.
+        entropy_translation_finite_points: the keyframe entropy includes the newest pose's
+            translation when more than this many finite landmarks are connected (rotation
+            only otherwise; the reference's value).
         keyframe_extra_iterations: extra iterations after a keyframe was inserted.
         constant_velocity: not in the reference (which starts from the last pose): start each
             frame's optimisation from a constant-velocity prediction.
+        max_velocity_extrapolation: the constant-velocity guess scales the last motion by the
+            elapsed time over the last time step, at most by this factor (frame drops).
         reinit_keeps_scale: not in the reference (which takes the fixed initial scale): a map
             re-initialisation after the map was lost (every point at infinity, e.g. after a
             long turn in place) scales the new map so the scene keeps the mean distance it had
             in the last frame that saw enough finite landmarks, and the sub-map continues;
             false = the fixed initial scale and a new sub-map.
+        scene_distance_min_points: the scene distance a re-initialisation keeps is updated
+            from frames that see at least this many finite landmarks.
         motion_guided_tracking: not in the reference: the frontend first tracks each point
             from where the constant-velocity pose predicts it (landmarks with d > 0 by their
             depth, the others by the infinite homography), then as the reference does.
@@ -61,21 +68,28 @@ class EstimatorConfig:
     failure_min_connected: int = 7
     min_triangulation_distance: float = 0.03
     entropy_iteration: int = 4
+    entropy_translation_finite_points: int = 5
     keyframe_extra_iterations: int = 2
     constant_velocity: bool = True
+    max_velocity_extrapolation: float = 5.0
     motion_guided_tracking: bool = True
     reinit_keeps_scale: bool = True
+    scene_distance_min_points: int = 20
 
     def __post_init__(self) -> None:
         if not 0.0 < self.keyframe_entropy_fraction <= 1.0:
             raise ConfigError("estimator: keyframe_entropy_fraction must be in (0, 1]")
         for name in ("keyframe_min_connected", "min_frames_after_keyframe", "min_finite_observations",
-                     "failure_min_connected", "entropy_iteration", "keyframe_extra_iterations"):
+                     "failure_min_connected", "entropy_iteration", "keyframe_extra_iterations",
+                     "entropy_translation_finite_points", "scene_distance_min_points"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ConfigError(f"estimator: {name} must be an integer >= 0, got {value!r}")
         if not (math.isfinite(self.min_triangulation_distance) and self.min_triangulation_distance >= 0):
             raise ConfigError("estimator: min_triangulation_distance must be >= 0")
+        value = self.max_velocity_extrapolation
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+            raise ConfigError("estimator: max_velocity_extrapolation must be a positive number")
         for name in ("previous_frame_as_keyframe", "constant_velocity", "motion_guided_tracking",
                      "reinit_keeps_scale"):
             if not isinstance(getattr(self, name), bool):
