@@ -41,14 +41,14 @@ class BackendConfig:
             instead of a singular system. It damps the step only, it is not part of the cost.
         use_lm: Levenberg-Marquardt (steps are accepted only when the cost decreases) instead
             of plain Gauss-Newton.
-        lm_lambda_init, lm_lambda_min, lm_lambda_max: LM damping, ``H + lambda diag(H)``.
-        lm_lambda_decrease, lm_lambda_increase: after an accepted LM step lambda is divided by
-            the first (the reference's 3), after a rejected one multiplied by the second.
         lm_calls_after_failed_step: not in the reference: after a Gauss-Newton step raised
             the cost (it is undone), this many further optimisations use Levenberg-Marquardt.
             Measured (about one failed step per sequence): with 0, RMS RPE 0.184 m on
             assets/sequences/framedrop and 0.042 m on the 640x480 spiral; with 40, 0.118 m and
             0.032 m; the other sequences are unchanged.
+        lm_lambda_init, lm_lambda_min, lm_lambda_max: LM damping, ``H + lambda diag(H)``.
+        lm_lambda_decrease, lm_lambda_increase: after an accepted LM step lambda is divided by
+            the first (the reference's 3), after a rejected one multiplied by the second.
         max_frames, max_keyframes: window size (3 recent frames + 11 keyframes).
         marg_seen_fraction, marg_distance_epsilon: which keyframe leaves a full window (the
             estimator's policy, :func:`granite.estimator.window_policy.frames_to_marginalize`):
@@ -69,12 +69,12 @@ class BackendConfig:
     outlier_threshold: float = 3.0
     landmark_damping: float = 1e-9
     use_lm: bool = False
+    lm_calls_after_failed_step: int = 40
     lm_lambda_init: float = 1e-4
     lm_lambda_min: float = 1e-12
     lm_lambda_max: float = 1e4
     lm_lambda_decrease: float = 3.0
     lm_lambda_increase: float = 10.0
-    lm_calls_after_failed_step: int = 40
     max_frames: int = 3
     max_keyframes: int = 11
     marg_seen_fraction: float = 0.05
