@@ -13,7 +13,7 @@ is finite, an unprojection when the model accepts the pixel; models registered w
 
 The loop is written once, as numba overloads specialised per model at compile time (a kernel
 passed as an argument could not be cached, and a shared helper taking arrays is not inlined),
-so it runs as fast as a loop written for the model. :func:`project_points` and
+so it runs about as fast as a loop written for the model. :func:`project_points` and
 :func:`unproject_pixels` are the entry points, from Python or njit code.
 """
 
