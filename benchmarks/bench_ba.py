@@ -10,7 +10,7 @@
    3 frames with ~900 landmarks / ~5000 observations): ``add_frame``, ``add_landmark``, one
    ``add_observation`` per observation (or one ``add_observations`` batch with ``--batch``),
    ``optimize(snapshot_iteration=3)`` + negative entropy, ``num_connected`` (3x),
-   ``remove_outliers``, ``select_frames_to_marginalize`` + ``marginalize``. Prints the
+   ``remove_outliers``, ``frames_to_marginalize`` (estimator policy) + ``marginalize``. Prints the
    median milliseconds per frame over the steady-state frames with a per-call breakdown.
 
 Numba compilation is excluded: a warm-up run is done first (kernels are cached on disk with
@@ -32,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from granite.backend import BackendConfig, SlidingWindow, pose_delta  # noqa: E402
 from granite.backend.synthetic import build_window, make_scene  # noqa: E402
+from granite.estimator.window_policy import frames_to_marginalize  # noqa: E402
 from granite.geometry import decoupled_increment  # noqa: E402
 
 
@@ -144,7 +145,7 @@ def per_frame(batch: bool) -> None:
             t4 = time.perf_counter()
             sizes.append((len(win.frame_ids), len(win.landmarks),
                           win.landmarks.num_observations))
-            win.marginalize(win.select_frames_to_marginalize())
+            win.marginalize(frames_to_marginalize(win, win.config))
             t5 = time.perf_counter()
             t.update(add_frame_landmarks=t1 - t0, add_observations=t2 - t1,
                      optimize=t3 - t2, connected_outliers=t4 - t3, marginalize=t5 - t4,

@@ -11,3 +11,9 @@ Conventions used throughout the package:
 """
 
 __version__ = "0.1.0"
+
+# Before any kernel is compiled: numba's on-disk cache keyed by a hash of these sources
+# (granite/_numba_cache.py), so that it is always valid.
+from granite._numba_cache import configure_numba_cache as _configure_numba_cache  # noqa: E402
+
+_configure_numba_cache()

@@ -78,7 +78,7 @@ def test_database_bookkeeping():
     finite, infinite = win.num_connected(scene.frame_ids[2])
     assert infinite == 0 and finite == len(db.observed_in(scene.frame_ids[2]))
     some = next(iter(db.observed_in(scene.frame_ids[2])))
-    db.landmark(some).inv_dist = 0.0
+    win.set_inverse_distance(some, 0.0)
     assert win.num_connected(scene.frame_ids[2]) == (finite - 1, 1)
     direction, d = win.landmark_in_world(some)
     assert d == 0.0 and np.linalg.norm(direction) == pytest.approx(1.0)

@@ -49,10 +49,9 @@ def _assert_pack_equal(db, frame_index, landmark_ids=None, target_filter=None):
     return pk
 
 
-def test_pack_matches_reference_under_random_edits(monkeypatch):
-    monkeypatch.setattr(LandmarkDatabase, "_MIN_COMPACT", 16)  # exercise compaction
+def test_pack_matches_reference_under_random_edits():
     rng = np.random.default_rng(3)
-    db = LandmarkDatabase()
+    db = LandmarkDatabase(compact_threshold=16)  # exercise compaction
     frames = list(range(10, 18))
     next_lm = 0
     for step in range(400):
@@ -77,7 +76,7 @@ def test_pack_matches_reference_under_random_edits(monkeypatch):
             db.add_observations(int(rng.choice(frames)), lms, rng.uniform(0, 640, (len(lms), 2)),
                                 rng.integers(0, 3, len(lms)))
         else:
-            db.landmark(int(rng.choice(db.landmark_ids))).inv_dist = float(rng.uniform(0, 1))
+            db.set_inverse_distance(int(rng.choice(db.landmark_ids)), float(rng.uniform(0, 1)))
         if step % 20 == 0:
             index = {f: i for i, f in enumerate(frames)}
             pk = _assert_pack_equal(db, index)
@@ -191,7 +190,7 @@ def test_num_connected_follows_inverse_distance_edits():
     seen = win.landmarks.observed_in(f)
     assert win.num_connected(f) == (len(seen), 0)
     for lm_id in list(seen)[:5]:
-        win.landmarks.landmark(lm_id).inv_dist = 0.0
+        win.set_inverse_distance(lm_id, 0.0)
     assert win.num_connected(f) == (len(seen) - 5, 5)
     assert win.num_connected(12345) == (0, 0)
 
@@ -201,8 +200,8 @@ def test_no_motion_pairs_match_reference():
     win = build_window(scene)
     db = win.landmarks
     for lm_id in db.landmark_ids[::2]:
-        db.landmark(lm_id).inv_dist = 0.0
-    problem = win._problem()
+        db.set_inverse_distance(lm_id, 0.0)
+    problem = win.problem()
     pk = problem.packed
     k = len(problem.frame_ids)
     for _ in range(2):  # second call uses the cached pair structure
@@ -216,7 +215,7 @@ def test_no_motion_pairs_match_reference():
             linked[key] = linked.get(key, False) or pk.lm_d[pk.obs_lm[o]] > 0.0
         expected = sorted((key for key, finite in linked.items() if not finite),
                           key=lambda p: p[0] * k + p[1])
-        assert win._no_motion_pairs(problem) == expected
+        assert problem.no_motion_pairs(win.config.no_motion_weight) == expected
         pk.lm_d[:] = 0.0
 
 

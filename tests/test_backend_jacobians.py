@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from granite.backend import BackendConfig
-from granite.backend.landmarks import (
+from granite.backend.stereographic import (
     bearing_from_stereo,
     bearings_from_stereo,
     stereo_from_bearing,
@@ -65,7 +65,7 @@ def test_stereographic_roundtrip_and_jacobian():
 @pytest.mark.parametrize("camera_name", ["pinhole", "kb4", "ds"])
 def test_reprojection_jacobians_match_finite_differences(camera_name):
     _, win = _window(camera_name)
-    problem = win._problem()
+    problem = win.problem()
     pk = problem.packed
     # one point at infinity: its inverse-distance column must be zero, pose rotations still act
     pk.lm_d[3] = 0.0
@@ -114,7 +114,7 @@ def test_reprojection_jacobians_match_finite_differences(camera_name):
 
 def test_first_estimate_jacobians_use_linearisation_poses():
     _, win = _window()
-    problem = win._problem()
+    problem = win.problem()
     pk = problem.packed
     poses_lin = problem.poses.copy()
     moved = problem.poses.copy()
@@ -131,7 +131,7 @@ def test_first_estimate_jacobians_use_linearisation_poses():
 
 def _dense_problem(win):
     """Dense Jacobian (finite differences) of all weighted residuals over [poses, landmarks]."""
-    problem = win._problem()
+    problem = win.problem()
     pk = problem.packed
     K, M, N = len(problem.frame_ids), pk.num_landmarks, pk.num_observations
     eps = 1e-6
@@ -222,13 +222,13 @@ def test_window_gradient_matches_robust_cost():
     win.set_scale_fix(scene.frame_ids[0], scene.frame_ids[2], 0.3)
     # all landmarks of one host at infinity: its pairs are linked only by d = 0 points
     for lm in win.landmarks.hosted_by(scene.frame_ids[-2]):
-        win.landmarks.landmark(lm).inv_dist = 0.0
+        win.set_inverse_distance(lm, 0.0)
     hess = win.hessian_blocks()
     assert np.any(hess.H_no_motion != 0) and np.any(hess.H_scale_fix != 0)
     # The window scatters the no-motion terms of all pairs at once: same as term by term.
-    problem = win._problem()
+    problem = win.problem()
     expected = np.zeros_like(hess.H_no_motion)
-    for h, t in win._no_motion_pairs(problem):
+    for h, t in problem.no_motion_pairs(win.config.no_motion_weight):
         fh, ft = problem.frame_ids[h], problem.frame_ids[t]
         H, _, _ = no_motion_terms(win.pose(fh), win.pose(ft), 0.5)
         rows = np.r_[6 * hess.index(fh):6 * hess.index(fh) + 6, 6 * hess.index(ft):6 * hess.index(ft) + 6]

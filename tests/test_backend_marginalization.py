@@ -1,14 +1,16 @@
 """Marginalisation: the prior against dense Schur complements, its null space (monocular gauge),
-equivalence with the full problem, the scale fix moving into the prior and the window policy."""
+equivalence with the full problem, the scale fix moving into the prior, and the window kept at
+its size by the estimator's policy."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from granite.backend import BackendConfig, MargPrior, pose_delta
+from granite.backend import BackendConfig, MargPrior, SlidingWindow, pose_delta
 from granite.backend.reprojection import reprojection_residuals
 from granite.backend.synthetic import build_window, make_scene
+from granite.estimator.window_policy import frames_to_marginalize
 from granite.geometry import decoupled_increment
 
 LSQ = dict(huber_threshold=1e6)  # no robust down-weighting: exact quadratic comparisons
@@ -62,7 +64,7 @@ def test_prior_equals_dense_schur_complement():
     win.optimize(max_iterations=2)
     win.set_pose(f0, decoupled_increment(win.pose(f0), np.full(6, 1e-4)))  # off its prior mean
     hosted = sorted(win.landmarks.hosted_by(f0))
-    problem = win._problem(hosted)
+    problem = win.problem(hosted)
     pk = problem.packed
     K, M = len(problem.frame_ids), pk.num_landmarks
     eps = 1e-6
@@ -245,45 +247,12 @@ def test_prior_is_never_relinearised():
     assert any(not np.array_equal(win.pose(g), lin[g]) for g in lin)
 
 
-def test_selection_policy():
-    cfg = BackendConfig(max_frames=3, max_keyframes=4)
-    scene = make_scene(num_frames=9, num_points=150, sigma=0.5, recent_frames=3, seed=50)
-    win = build_window(scene, cfg, seed=51)
-    win.make_keyframe(scene.frame_ids[-3])  # a recent frame promoted: never chosen
-    # 6 old keyframes + the promoted one > 4: keyframe 0's landmarks are not seen in the newest
-    # frame any more (landmarks are observed in at most 5 consecutive frames)
-    newest = scene.frame_ids[-1]
-    seen = win.landmarks.observed_in(newest)
-    assert not (win.landmarks.hosted_by(scene.frame_ids[0]) & seen)
-    assert win.select_frames_to_marginalize() == [scene.frame_ids[0]]
-    # DSO distance score when every keyframe still shares landmarks with the newest frame
-    win2 = build_window(scene, cfg, seed=51)
-    for g in scene.frame_ids[:6]:
-        host_lm = 100000 + g
-        win2.add_landmark(host_lm, g, np.array([0.0, 0.0, 1.0]), 0.1)
-        win2.add_observation(host_lm, g, np.array([320.0, 240.0]))
-        win2.add_observation(host_lm, newest, np.array([320.0, 240.0]))
-        for lm_id in win2.landmarks.hosted_by(g) - {host_lm}:
-            win2.remove_landmark(lm_id)
-    T = win2.pose(scene.frame_ids[3])
-    T[:3, 3] = win2.pose(scene.frame_ids[2])[:3, 3] + 1e-3  # nearly on top of keyframe 2
-    win2.set_pose(scene.frame_ids[3], T)
-    assert win2.select_frames_to_marginalize() in ([scene.frame_ids[2]], [scene.frame_ids[3]])
-    # old non-keyframes always leave
-    win3 = build_window(make_scene(num_frames=8, num_points=100, keyframe_every=2, seed=52),
-                        cfg)
-    ids = win3.frame_ids
-    old_nonkf = [g for g in ids[:-3] if not win3.is_keyframe(g)]
-    assert set(old_nonkf) <= set(win3.select_frames_to_marginalize())
-
-
 def test_incremental_sliding_window_tracks_truth():
     """Frames arrive one by one; keyframes host new landmarks; the window is kept at its size
     by the policy. The final window stays close to the truth and bounded in size."""
     scene = make_scene(num_frames=20, num_points=500, sigma=0.5, keyframe_every=2,
                        obs_per_landmark=6, seed=60)
     cfg = BackendConfig(max_frames=3, max_keyframes=5)
-    from granite.backend import SlidingWindow
     win = SlidingWindow(scene.camera, cfg)
     by_frame: dict[int, list] = {}
     for obs in scene.observations:
@@ -306,11 +275,19 @@ def test_incremental_sliding_window_tracks_truth():
         if k == 2:
             win.set_scale_fix(scene.frame_ids[0], fid,
                               _true_length(scene, scene.frame_ids[0], fid))
-        report = win.optimize()
+        start = win.hessian_blocks()  # the system at the estimate the optimisation starts from
+        report = win.optimize(snapshot_iteration=0)
         assert np.isfinite(report.final_cost)
-        assert np.isfinite(report.snapshot.negative_entropy(fid)) if report.snapshot else True
+        snap = report.snapshot
+        assert snap is not None and snap.cost == report.costs[0]
+        assert snap.cost == pytest.approx(start.cost, rel=1e-12)
+        if k >= 2:  # gauge and scale fixed: entropy of the newest pose from the dense covariance
+            blk = start.block(fid)
+            cov = np.linalg.inv(start.H)[blk, blk]
+            assert snap.negative_entropy(fid) == pytest.approx(-np.linalg.slogdet(cov)[1],
+                                                               rel=1e-6)
         win.remove_outliers()
-        win.marginalize(win.select_frames_to_marginalize())
+        win.marginalize(frames_to_marginalize(win, cfg))
         assert len(win.frame_ids) <= cfg.max_frames + cfg.max_keyframes
         assert set(win.prior.frame_ids) <= set(win.frame_ids)
     for fid in win.frame_ids:

@@ -110,12 +110,11 @@ def test_far_points_with_wrong_depth_converge_to_infinity():
     far_from_baseline = []
     for lm_id, d_true in zip(scene.lm_ids, scene.lm_inv_dist):
         if d_true < 0.01:
-            lm = win.landmarks.landmark(lm_id)
-            if lm.host_frame_id == 0:
-                lm.inv_dist = rng.uniform(0.05, 0.2)
+            if win.landmarks.landmark(lm_id).host_frame_id == 0:
+                win.set_inverse_distance(lm_id, rng.uniform(0.05, 0.2))
                 far_from_baseline.append(lm_id)
             else:
-                lm.inv_dist = 0.0
+                win.set_inverse_distance(lm_id, 0.0)
     assert len(far_from_baseline) >= 15
     _scale_fix(win, scene)
     report = win.optimize(max_iterations=10)

@@ -16,8 +16,7 @@ from granite.camera import (
     PinholeCamera,
     make_camera,
 )
-from granite.camera.double_sphere import ds_project, ds_unproject
-from granite.camera.kannala_brandt import kb4_project_jacobians, kb4_unproject_jacobians
+from granite.camera import batch
 from granite.errors import ConfigError
 
 SEED = 1234
@@ -357,10 +356,10 @@ def test_bad_array_shapes_raise_value_error():
 
 @numba.njit(cache=True)
 def _njit_kb4_ds(kp_kb4, kp_ds, pts):
-    uv1, jp1, jk1, v1 = kb4_project_jacobians(kp_kb4, pts)
-    b1, jb1, w1 = kb4_unproject_jacobians(kp_kb4, uv1)
-    uv2, v2 = ds_project(kp_ds, pts)
-    b2, w2 = ds_unproject(kp_ds, uv2)
+    uv1, jp1, jk1, v1 = batch.project_points(batch.KB4, kp_kb4, pts, True)
+    b1, jb1, w1 = batch.unproject_pixels(batch.KB4, kp_kb4, uv1, True)
+    uv2, _, _, v2 = batch.project_points(batch.DS, kp_ds, pts, False)
+    b2, _, w2 = batch.unproject_pixels(batch.DS, kp_ds, uv2, False)
     return uv1, jp1, b1, jb1, uv2, b2
 
 

@@ -9,13 +9,11 @@ See ``docs/backend.md``.
 from granite.backend.config import BackendConfig
 from granite.backend.hessian import WindowHessian, marginal_information, marginalize_dense
 from granite.backend.landmarks import Landmark, LandmarkDatabase, Observation
+from granite.backend.marginalization import MarginalizationReport
 from granite.backend.priors import MargPrior, ScaleFix, pose_delta
-from granite.backend.window import (
-    FrameState,
-    MarginalizationReport,
-    OptimizeReport,
-    SlidingWindow,
-)
+from granite.backend.problem import WindowProblem
+from granite.backend.solver import OptimizeReport
+from granite.backend.window import FrameState, SlidingWindow
 
 __all__ = [
     "BackendConfig",
@@ -23,6 +21,7 @@ __all__ = [
     "OptimizeReport",
     "MarginalizationReport",
     "FrameState",
+    "WindowProblem",
     "WindowHessian",
     "MargPrior",
     "ScaleFix",

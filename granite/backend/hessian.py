@@ -12,7 +12,14 @@ import dataclasses
 import numpy as np
 
 
-def _generalized_inverse(H: np.ndarray, rel_tol: float = 1e-12) -> np.ndarray:
+#: Numerical rank cut-off of :func:`_generalized_inverse`: eigenvalues of the Jacobi-scaled
+#: matrix below this fraction of the largest are zero information (unconstrained directions,
+#: e.g. the gauge). A property of float64 round-off (about 1e4 eps), not of the problem, so
+#: not a setting.
+_EIGENVALUE_REL_TOL = 1e-12
+
+
+def _generalized_inverse(H: np.ndarray, rel_tol: float = _EIGENVALUE_REL_TOL) -> np.ndarray:
     """A generalised inverse of a symmetric PSD matrix: Jacobi scaling, then the eigenvalue
     pseudo-inverse with eigenvalues below ``rel_tol * max`` treated as zero."""
     n = H.shape[0]

@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 
+from granite.backend.problem import pose_rows
 from granite.geometry import so3_log
 
 
@@ -105,3 +106,69 @@ def no_motion_terms(T_w_h: np.ndarray, T_w_t: np.ndarray, weight: float
     b[0:3] = -weight * diff
     b[6:9] = weight * diff
     return H, b, float(weight * diff @ diff)
+
+
+def pose_prior_terms(problem, prior: MargPrior, scale_fix: ScaleFix | None,
+                     pairs: list[tuple[int, int]], no_motion_weight: float,
+                     include: set[int] | None = None):
+    """Dense marginalisation-prior, scale-fix and no-motion terms over a
+    :class:`~granite.backend.problem.WindowProblem`'s poses: three ``(H, b, cost)`` of size
+    6K. ``pairs`` are the problem's no-motion pose-index pairs. With ``include`` only scale-fix
+    and no-motion terms touching those frame ids are added (marginalisation); the prior is
+    always added (the new prior replaces it and must keep its information, e.g. the gauge)."""
+    n6 = 6 * len(problem.frame_ids)
+    idx = problem.index
+    poses = {f: problem.poses[i] for f, i in idx.items()}
+    H_p = np.zeros((n6, n6))
+    b_p = np.zeros(n6)
+    cost_p = 0.0
+    if prior.frame_ids:
+        Hm, bm, cost_p = prior.linearize(poses)
+        _scatter(H_p, b_p, pose_rows(idx, prior.frame_ids), Hm, bm)
+    H_s = np.zeros((n6, n6))
+    b_s = np.zeros(n6)
+    cost_s = 0.0
+    sf = scale_fix
+    if sf is not None and (include is None or include & {sf.frame_i, sf.frame_j}):
+        Hs, bs, cost_s = sf.linearize(poses[sf.frame_i], poses[sf.frame_j])
+        _scatter(H_s, b_s, pose_rows(idx, (sf.frame_i, sf.frame_j)), Hs, bs)
+    H_n = np.zeros((n6, n6))
+    b_n = np.zeros(n6)
+    cost_n = 0.0
+    fids = problem.frame_ids
+    if include is not None:
+        pairs = [(h, t) for h, t in pairs if include & {fids[h], fids[t]}]
+    if pairs:  # no_motion_terms for every pair, scattered at once
+        w = no_motion_weight
+        hs, ts = np.array(pairs, dtype=np.int64).T
+        diff = problem.poses[ts, :3, 3] - problem.poses[hs, :3, 3]  # (P, 3)
+        k = np.arange(3)
+        rh = (6 * hs[:, None] + k).ravel()
+        rt = (6 * ts[:, None] + k).ravel()
+        ones = np.full(rh.shape, w)
+        np.add.at(H_n, (np.concatenate([rh, rt, rh, rt]), np.concatenate([rh, rt, rt, rh])),
+                  np.concatenate([ones, ones, -ones, -ones]))
+        np.add.at(b_n, rh, -w * diff.ravel())
+        np.add.at(b_n, rt, w * diff.ravel())
+        cost_n = float(w * np.sum(diff * diff))
+    return (H_p, b_p, cost_p), (H_s, b_s, cost_s), (H_n, b_n, cost_n)
+
+
+def pose_prior_cost(problem, prior: MargPrior, scale_fix: ScaleFix | None,
+                    pairs: list[tuple[int, int]], no_motion_weight: float) -> float:
+    """The cost of the terms of :func:`pose_prior_terms` at the problem's poses."""
+    poses = {f: problem.poses[i] for f, i in problem.index.items()}
+    cost = prior.linearize(poses)[2] if prior.frame_ids else 0.0
+    if scale_fix is not None:
+        sf = scale_fix
+        cost += sf.linearize(poses[sf.frame_i], poses[sf.frame_j])[2]
+    for h, t in pairs:
+        d = problem.poses[t][:3, 3] - problem.poses[h][:3, 3]
+        cost += no_motion_weight * float(d @ d)
+    return cost
+
+
+def _scatter(H: np.ndarray, b: np.ndarray, rows: np.ndarray, H_term: np.ndarray,
+             b_term: np.ndarray) -> None:
+    H[np.ix_(rows, rows)] += H_term
+    b[rows] += b_term

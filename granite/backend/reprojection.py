@@ -34,7 +34,8 @@ import math
 import numba
 import numpy as np
 
-from granite.backend.landmarks import PackedObservations, bearing_from_stereo_into
+from granite.backend.packing import PackedObservations
+from granite.backend.stereographic import bearing_from_stereo_into
 
 
 @numba.njit(cache=True)

@@ -16,7 +16,8 @@ import scipy.linalg
 @numba.njit(cache=True)
 def _spd_inverse3(A: np.ndarray, out: np.ndarray) -> None:
     """Inverse of a symmetric positive semi-definite 3x3 via LDL^T; directions with a pivot
-    ``<= 1e-15 * max diag`` are treated as unconstrained (their inverse is set to 0)."""
+    ``<= 1e-15 * max diag`` are treated as unconstrained (their inverse is set to 0). The
+    threshold is float64 round-off, not a setting."""
     scale = max(A[0, 0], A[1, 1], A[2, 2])
     tol = 1e-15 * scale if scale > 0.0 else 1e-300
     L = np.zeros((3, 3))
@@ -214,8 +215,9 @@ def solve_normal_equations(H: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Step ``dx = -H^-1 b`` of a symmetric positive (semi-)definite system.
 
     Jacobi-scaled Cholesky; if the matrix is not numerically positive definite, a growing
-    relative diagonal regulariser is added (starting at 1e-12) until the factorisation
-    succeeds. Rows with a zero diagonal get a zero step.
+    relative diagonal regulariser is added (1e-12, then x100, 12 attempts) until the
+    factorisation succeeds: a numerical safeguard for (nearly) singular systems, not
+    a setting. Rows with a zero diagonal get a zero step.
     """
     diag = np.diag(H).copy()
     active = diag > 0.0

@@ -12,10 +12,11 @@ they are finite and can be masked or weighted to zero safely; NaN/inf input is i
 from __future__ import annotations
 
 import math
-from typing import Callable, ClassVar
+from typing import ClassVar
 
 import numpy as np
 
+from granite.camera import batch
 from granite.errors import ConfigError
 
 
@@ -27,14 +28,12 @@ def _as_array(a: np.ndarray, cols: int, what: str) -> np.ndarray:
 
 
 class CameraModel:
-    """Base class: subclasses set ``name``, ``param_names`` and the four numba kernels."""
+    """Base class: subclasses set ``name``, ``param_names`` and ``kernel_model``, the id under
+    which their per-point kernels are registered in :mod:`granite.camera.batch`."""
 
     name: ClassVar[str] = ""
     param_names: ClassVar[tuple[str, ...]] = ()
-    _k_project: ClassVar[Callable]
-    _k_project_jac: ClassVar[Callable]
-    _k_unproject: ClassVar[Callable]
-    _k_unproject_jac: ClassVar[Callable]
+    kernel_model: ClassVar[int]
 
     def __init__(self, params: np.ndarray, width: int, height: int) -> None:
         """``params``: intrinsics in Basalt order (``param_names``); ``width``/``height``:
@@ -79,15 +78,16 @@ class CameraModel:
 
     @property
     def kernel_params(self) -> np.ndarray:
-        """Parameter vector the module-level numba kernels take (``params`` followed by
-        precomputed constants), for calling e.g. ``kb4_project_jacobians(cam.kernel_params,
-        points)`` from inside njit code."""
+        """Parameter vector the numba kernels take (``params`` followed by precomputed
+        constants), for calling e.g. ``batch.project_points(cam.kernel_model,
+        cam.kernel_params, points, True)`` from inside njit code."""
         return self._kparams
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels ``uv`` (N,2) of camera-frame points (N,3), and ``valid`` (N,) bool."""
         pts = _as_array(points, 3, "points")
-        return self._k_project(self._kparams, pts)
+        uv, _, _, valid = batch.project_points(self.kernel_model, self._kparams, pts, False)
+        return uv, valid
 
     def project_jacobians(
         self, points: np.ndarray
@@ -95,17 +95,18 @@ class CameraModel:
         """``(uv (N,2), d_uv_d_point (N,2,3), d_uv_d_params (N,2,P), valid (N,))``;
         parameter derivatives are in ``param_names`` order."""
         pts = _as_array(points, 3, "points")
-        return self._k_project_jac(self._kparams, pts)
+        return batch.project_points(self.kernel_model, self._kparams, pts, True)
 
     def unproject(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unit bearings (N,3) in the camera frame of pixels (N,2), and ``valid`` (N,)."""
         pix = _as_array(uv, 2, "uv")
-        return self._k_unproject(self._kparams, pix)
+        b, _, valid = batch.unproject_pixels(self.kernel_model, self._kparams, pix, False)
+        return b, valid
 
     def unproject_jacobians(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(bearings (N,3), d_bearing_d_uv (N,3,2), valid (N,))``."""
         pix = _as_array(uv, 2, "uv")
-        return self._k_unproject_jac(self._kparams, pix)
+        return batch.unproject_pixels(self.kernel_model, self._kparams, pix, True)
 
     def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """True where ``margin <= u <= width - 1 - margin`` and ``margin <= v <= height - 1 -

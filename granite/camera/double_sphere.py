@@ -18,7 +18,9 @@ import math
 import numba
 import numpy as np
 
+from granite.camera import batch
 from granite.camera.base import CameraModel
+from granite.camera.batch import register_model
 from granite.errors import ConfigError
 
 
@@ -72,51 +74,6 @@ def _ds_project_one(kp: np.ndarray, points: np.ndarray, i: int, uv, jp, jk, want
         jk[i, 1, 4] = -ay * dn_dxi
         jk[i, 1, 5] = -ay * dn_dalpha
     return True
-
-
-@numba.njit(cache=True)
-def ds_project(kp: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    n = points.shape[0]
-    uv = np.zeros((n, 2))
-    dummy = np.zeros((0, 2, 3))
-    dummy_k = np.zeros((0, 2, 6))
-    valid = np.zeros(n, dtype=np.bool_)
-    for i in range(n):
-        ok = _ds_project_one(kp, points, i, uv, dummy, dummy_k, False)
-        if ok and math.isfinite(uv[i, 0]) and math.isfinite(uv[i, 1]):
-            valid[i] = True
-        else:
-            uv[i, 0] = 0.0
-            uv[i, 1] = 0.0
-    return uv, valid
-
-
-@numba.njit(cache=True)
-def ds_project_jacobians(kp: np.ndarray, points: np.ndarray):
-    n = points.shape[0]
-    uv = np.zeros((n, 2))
-    jp = np.zeros((n, 2, 3))
-    jk = np.zeros((n, 2, 6))
-    valid = np.zeros(n, dtype=np.bool_)
-    for i in range(n):
-        ok = _ds_project_one(kp, points, i, uv, jp, jk, True)
-        if ok:
-            for a in range(2):
-                if not math.isfinite(uv[i, a]):
-                    ok = False
-                for b in range(3):
-                    if not math.isfinite(jp[i, a, b]):
-                        ok = False
-                for b in range(6):
-                    if not math.isfinite(jk[i, a, b]):
-                        ok = False
-        if ok:
-            valid[i] = True
-        else:
-            uv[i, :] = 0.0
-            jp[i, :, :] = 0.0
-            jk[i, :, :] = 0.0
-    return uv, jp, jk, valid
 
 
 @numba.njit(cache=True)
@@ -174,37 +131,8 @@ def _ds_unproject_one(kp: np.ndarray, uv: np.ndarray, i: int, b, jb, want_jac: b
     return True
 
 
-@numba.njit(cache=True)
-def ds_unproject(kp: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    n = uv.shape[0]
-    b = np.zeros((n, 3))
-    dummy = np.zeros((0, 3, 2))
-    valid = np.zeros(n, dtype=np.bool_)
-    for i in range(n):
-        valid[i] = _ds_unproject_one(kp, uv, i, b, dummy, False)
-        if not valid[i]:
-            b[i, :] = 0.0
-    return b, valid
-
-
-@numba.njit(cache=True)
-def ds_unproject_jacobians(kp: np.ndarray, uv: np.ndarray):
-    n = uv.shape[0]
-    b = np.zeros((n, 3))
-    jb = np.zeros((n, 3, 2))
-    valid = np.zeros(n, dtype=np.bool_)
-    for i in range(n):
-        ok = _ds_unproject_one(kp, uv, i, b, jb, True)
-        if ok:
-            for a in range(3):
-                for c in range(2):
-                    if not math.isfinite(jb[i, a, c]):
-                        ok = False
-        valid[i] = ok
-        if not ok:
-            b[i, :] = 0.0
-            jb[i, :, :] = 0.0
-    return b, jb, valid
+register_model(batch.DS, _ds_project_one, _ds_unproject_one, 6,
+               check_jacobians=(True, True))
 
 
 class DoubleSphereCamera(CameraModel):
@@ -213,10 +141,7 @@ class DoubleSphereCamera(CameraModel):
 
     name = "ds"
     param_names = ("fx", "fy", "cx", "cy", "xi", "alpha")
-    _k_project = staticmethod(ds_project)
-    _k_project_jac = staticmethod(ds_project_jacobians)
-    _k_unproject = staticmethod(ds_unproject)
-    _k_unproject_jac = staticmethod(ds_unproject_jacobians)
+    kernel_model = batch.DS
 
     def _kernel_params(self, p: np.ndarray) -> np.ndarray:
         xi, alpha = float(p[4]), float(p[5])

@@ -18,8 +18,10 @@ import math
 import numba
 import numpy as np
 
+from granite.camera import batch
 from granite.camera.base import CameraModel
-from granite.camera.pinhole import EPS_SQRT
+from granite.camera.batch import register_model
+from granite.camera.pinhole import EPS_SQRT, _pinhole_project_one
 
 _SMALL_TD = 1e-6
 
@@ -75,69 +77,9 @@ def _kb4_project_one(kp: np.ndarray, points: np.ndarray, i: int, uv, jp, jk, wan
                 jk[i, 0, 4 + j] = ax * tp
                 jk[i, 1, 4 + j] = ay * tp
                 tp *= t2
-    else:
-        if not z >= EPS_SQRT:
-            return False
-        iz = 1.0 / z
-        mx = x * iz
-        my = y * iz
-        uv[i, 0] = fx * mx + cx
-        uv[i, 1] = fy * my + cy
-        if want_jac:
-            jp[i, 0, 0] = fx * iz
-            jp[i, 0, 2] = -fx * mx * iz
-            jp[i, 1, 1] = fy * iz
-            jp[i, 1, 2] = -fy * my * iz
-            jk[i, 0, 0] = mx
-            jk[i, 0, 2] = 1.0
-            jk[i, 1, 1] = my
-            jk[i, 1, 3] = 1.0
-    return True
-
-
-@numba.njit(cache=True)
-def kb4_project(kp: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    n = points.shape[0]
-    uv = np.zeros((n, 2))
-    dummy = np.zeros((0, 2, 3))
-    dummy_k = np.zeros((0, 2, 8))
-    valid = np.zeros(n, dtype=np.bool_)
-    for i in range(n):
-        ok = _kb4_project_one(kp, points, i, uv, dummy, dummy_k, False)
-        if ok and math.isfinite(uv[i, 0]) and math.isfinite(uv[i, 1]):
-            valid[i] = True
-        else:
-            uv[i, 0] = 0.0
-            uv[i, 1] = 0.0
-    return uv, valid
-
-
-@numba.njit(cache=True)
-def kb4_project_jacobians(kp: np.ndarray, points: np.ndarray):
-    n = points.shape[0]
-    uv = np.zeros((n, 2))
-    jp = np.zeros((n, 2, 3))
-    jk = np.zeros((n, 2, 8))
-    valid = np.zeros(n, dtype=np.bool_)
-    for i in range(n):
-        ok = _kb4_project_one(kp, points, i, uv, jp, jk, True)
-        if ok:
-            for a in range(2):
-                if not math.isfinite(uv[i, a]):
-                    ok = False
-                for b in range(3):
-                    if not math.isfinite(jp[i, a, b]):
-                        ok = False
-                for b in range(8):
-                    if not math.isfinite(jk[i, a, b]):
-                        ok = False
-        if ok:
-            valid[i] = True
-        else:
-            uv[i, :] = 0.0
-            jp[i, :, :] = 0.0
-            jk[i, :, :] = 0.0
-    return uv, jp, jk, valid
+        return True
+    # on the optical axis the model is the pinhole (the distortion derivatives stay 0)
+    return _pinhole_project_one(kp, points, i, uv, jp, jk, want_jac)
 
 
 @numba.njit(cache=True)
@@ -207,31 +149,8 @@ def _kb4_unproject_one(kp: np.ndarray, uv: np.ndarray, i: int, b, jb, want_jac: 
     return True
 
 
-@numba.njit(cache=True)
-def kb4_unproject(kp: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    n = uv.shape[0]
-    b = np.zeros((n, 3))
-    dummy = np.zeros((0, 3, 2))
-    valid = np.zeros(n, dtype=np.bool_)
-    for i in range(n):
-        valid[i] = _kb4_unproject_one(kp, uv, i, b, dummy, False)
-        if not valid[i]:
-            b[i, :] = 0.0
-    return b, valid
-
-
-@numba.njit(cache=True)
-def kb4_unproject_jacobians(kp: np.ndarray, uv: np.ndarray):
-    n = uv.shape[0]
-    b = np.zeros((n, 3))
-    jb = np.zeros((n, 3, 2))
-    valid = np.zeros(n, dtype=np.bool_)
-    for i in range(n):
-        valid[i] = _kb4_unproject_one(kp, uv, i, b, jb, True)
-        if not valid[i]:
-            b[i, :] = 0.0
-            jb[i, :, :] = 0.0
-    return b, jb, valid
+register_model(batch.KB4, _kb4_project_one, _kb4_unproject_one, 8,
+               check_jacobians=(True, False))
 
 
 def kb4_theta_max(k: np.ndarray) -> float:
@@ -268,10 +187,7 @@ class KannalaBrandtCamera(CameraModel):
 
     name = "kb4"
     param_names = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
-    _k_project = staticmethod(kb4_project)
-    _k_project_jac = staticmethod(kb4_project_jacobians)
-    _k_unproject = staticmethod(kb4_unproject)
-    _k_unproject_jac = staticmethod(kb4_unproject_jacobians)
+    kernel_model = batch.KB4
 
     def _kernel_params(self, p: np.ndarray) -> np.ndarray:
         theta_max = kb4_theta_max(p[4:8])

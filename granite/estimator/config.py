@@ -61,14 +61,21 @@ class EstimatorConfig:
         min_triangulation_distance: a new landmark whose best baseline is shorter (map units)
             is inserted at infinity (d = 0).
         entropy_iteration: Gauss-Newton iteration after which the keyframe decision is taken.
+        entropy_translation_finite_points: the keyframe entropy includes the newest pose's
+            translation when more than this many finite landmarks are connected (rotation
+            only otherwise; the reference's value).
         keyframe_extra_iterations: extra iterations after a keyframe was inserted.
         constant_velocity: not in the reference (which starts from the last pose): start each
             frame's optimisation from a constant-velocity prediction.
+        max_velocity_extrapolation: the constant-velocity guess scales the last motion by the
+            elapsed time over the last time step, at most by this factor (frame drops).
         reinit_keeps_scale: not in the reference (which takes the fixed initial scale): a map
             re-initialisation after the map was lost (every point at infinity, e.g. after a
             long turn in place) scales the new map so the scene keeps the mean distance it had
             in the last frame that saw enough finite landmarks, and the sub-map continues;
             false = the fixed initial scale and a new sub-map.
+        scene_distance_min_points: the scene distance a re-initialisation keeps is updated
+            from frames that see at least this many finite landmarks.
         motion_guided_tracking: not in the reference: the frontend first tracks each point
             from where the constant-velocity pose predicts it (landmarks with d > 0 by their
             depth, the others by the infinite homography), then as the reference does.
@@ -82,10 +89,13 @@ class EstimatorConfig:
     failure_min_connected: int = spec_field(7, 0, 100000)
     min_triangulation_distance: float = spec_field(0.03, 0.0, 1e6)
     entropy_iteration: int = spec_field(4, 1, 1000, doc="at most [backend] max_iterations")
+    entropy_translation_finite_points: int = spec_field(5, 0, 100000)
     keyframe_extra_iterations: int = spec_field(2, 0, 1000)
     constant_velocity: bool = spec_field(True, origin="ours", reference=False)
+    max_velocity_extrapolation: float = spec_field(5.0, 0.0, 1000.0, lo_open=True, origin="ours")
     motion_guided_tracking: bool = spec_field(True, origin="ours", reference=False)
     reinit_keeps_scale: bool = spec_field(True, origin="ours", reference=False)
+    scene_distance_min_points: int = spec_field(20, 1, 100000, origin="ours")
 
     def __post_init__(self) -> None:
         validate_section(self, "estimator")
@@ -126,8 +136,13 @@ SECTION_LIMITS: dict[str, dict[str, dict[str, Any]]] = {
         "lm_lambda_init": limits(0.0, 1e20, lo_open=True, origin="ours"),
         "lm_lambda_min": limits(0.0, 1e20, lo_open=True, origin="ours"),
         "lm_lambda_max": limits(0.0, 1e20, lo_open=True, origin="ours"),
+        "lm_lambda_decrease": limits(1.0, 1e6, lo_open=True, origin="ours"),
+        "lm_lambda_increase": limits(1.0, 1e6, lo_open=True, origin="ours"),
+        "lm_calls_after_failed_step": limits(0, 1000000, origin="ours"),
         "max_frames": limits(1, 1000),
         "max_keyframes": limits(2, 1000),
+        "marg_seen_fraction": limits(0.0, 1.0),
+        "marg_distance_epsilon": limits(0.0, 1e6, lo_open=True),
     },
     "initialization": {
         "min_inliers": limits(5, 1000000),
@@ -137,6 +152,8 @@ SECTION_LIMITS: dict[str, dict[str, dict[str, Any]]] = {
         "ransac_confidence": limits(0.0, 1.0, lo_open=True, hi_open=True, origin="ours"),
         "min_bearing_z": limits(0.0, 1.0, hi_open=True, origin="ours"),
         "seed": limits(0, 2**31 - 1, origin="ours"),
+        "refine_reach": limits(0.0, 1.0, origin="ours"),
+        "refine_max_evaluations": limits(1, 1000000, origin="ours"),
     },
 }
 

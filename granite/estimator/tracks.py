@@ -1,0 +1,23 @@
+"""The frontend's tracks of the frames in the window, as the estimator keeps them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from granite.optical_flow import OpticalFlowResult
+
+
+@dataclass
+class FrameTracks:
+    """Tracks of one frame by track id: pixel position ``(u, v)`` and the pyramid level the
+    feature was created on. Track ids are the landmark ids of the backend."""
+
+    positions: dict[int, np.ndarray]
+    levels: dict[int, int]
+
+    @classmethod
+    def from_result(cls, result: OpticalFlowResult) -> FrameTracks:
+        return cls({int(t): p for t, p in zip(result.ids, result.positions)},
+                   {int(t): int(c) for t, c in zip(result.ids, result.levels)})

@@ -1,0 +1,55 @@
+"""Which frames leave the sliding window after each frame (the reference's window policy).
+
+Non-keyframes older than the newest ``max_frames`` frames leave. If more than
+``max_keyframes`` keyframes remain, one keyframe is marginalised: the oldest one with fewer than
+``marg_seen_fraction`` of its hosted landmarks seen in the newest frame, otherwise the one with
+the largest DSO distance score ``sqrt(|t_k - t_last|) * sum_j 1 / (|t_k - t_j| + eps)``
+(``t`` the camera centres of the keyframes, ``t_last`` the newest keyframe's, ``eps =
+marg_distance_epsilon``). The newest ``max_frames`` frames are never chosen.
+
+Departures from the reference (granite's ``KeypointVoEstimator::marginalize``): it takes the
+keyframe with the *smallest* score (DSO, which the score comes from, removes the largest: the
+keyframe close to others and far from the newest); its score sums over all keyframes but the
+two newest, including ``j = k`` (a constant ``1 / eps``); and its "lost most landmarks" test
+divides two integers, so it fires for any keyframe that has lost at least one landmark
+connection.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from granite.backend import BackendConfig, SlidingWindow
+
+
+def frames_to_marginalize(window: SlidingWindow, config: BackendConfig) -> list[int]:
+    """Frame ids to pass to :meth:`SlidingWindow.marginalize` (see the module docstring);
+    window size and rule constants come from ``config`` (the ``[backend]`` table)."""
+    ids = window.frame_ids
+    if not ids:
+        return []
+    recent = set(ids[-config.max_frames:])
+    out = [f for f in ids if f not in recent and not window.is_keyframe(f)]
+    kfs = [f for f in window.keyframe_ids if f not in out]
+    if len(kfs) <= config.max_keyframes:
+        return out
+    db = window.landmarks
+    seen = db.observed_in(ids[-1])
+    candidates = [f for f in kfs if f not in recent]
+    for f in candidates:
+        hosted = db.hosted_by(f)
+        if not hosted or len(hosted & seen) < config.marg_seen_fraction * len(hosted):
+            return out + [f]
+    centres = {f: window.pose(f)[:3, 3] for f in kfs}
+    t_last = centres[kfs[-1]]
+    best, best_score = None, -math.inf
+    for f in candidates:
+        t_f = centres[f]
+        denom = sum(1.0 / (np.linalg.norm(t_f - centres[g]) + config.marg_distance_epsilon)
+                    for g in kfs if g != f)
+        score = math.sqrt(np.linalg.norm(t_f - t_last)) * denom
+        if score > best_score:
+            best, best_score = f, score
+    return out + ([best] if best is not None else [])

@@ -1,0 +1,68 @@
+"""numba's on-disk cache is keyed by a hash of the package sources, so it is never stale."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+
+import granite
+from granite._numba_cache import PACKAGE_DIR, source_digest
+
+
+def test_granite_kernels_are_cached_under_the_source_hash():
+    from granite.backend.stereographic import bearing_from_stereo
+
+    cache_dir = Path(os.environ["NUMBA_CACHE_DIR"])
+    assert cache_dir.name == source_digest()[:16]
+    assert Path(granite.__file__).resolve().parent == PACKAGE_DIR
+    bearing_from_stereo(np.zeros(2))
+    assert Path(bearing_from_stereo.stats.cache_path).is_relative_to(cache_dir)
+
+
+def _write_toy(root: Path, inner_value: int) -> None:
+    """A package whose kernel ``outer`` (in outer.py) calls ``inner`` (in inner.py)."""
+    pkg = root / "toy"
+    pkg.mkdir(exist_ok=True)
+    (pkg / "__init__.py").write_text(textwrap.dedent("""
+        from pathlib import Path
+        from granite._numba_cache import configure_numba_cache
+        configure_numba_cache(Path(__file__).resolve().parent)
+    """))
+    (pkg / "inner.py").write_text(textwrap.dedent(f"""
+        import numba
+        @numba.njit(cache=True)
+        def inner():
+            return {inner_value}
+    """))
+    if (pkg / "outer.py").exists():
+        return  # outer.py stays untouched: numba's own stamp of it does not change
+    (pkg / "outer.py").write_text(textwrap.dedent("""
+        import numba
+        from toy.inner import inner
+        @numba.njit(cache=True)
+        def outer():
+            return inner() + 100
+    """))
+
+
+def test_editing_a_called_module_recompiles_the_caller(tmp_path):
+    """numba alone would load ``outer`` from its cache after ``inner.py`` changed (outer.py's
+    stamp did not change) and print the old value."""
+    env = dict(os.environ, PYTHONPATH=f"{tmp_path}{os.pathsep}{PACKAGE_DIR.parent}",
+               GRANITE_NUMBA_CACHE_ROOT=str(tmp_path / "cache"))
+    env.pop("NUMBA_CACHE_DIR", None)
+    code = "import toy.outer; print(toy.outer.outer())"
+    results = []
+    for value in (1, 2, 2):
+        _write_toy(tmp_path, value)
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                             text=True, check=True)
+        results.append(int(out.stdout.strip()))
+    assert results == [101, 102, 102]
+    toy_caches = {p.name for p in (tmp_path / "cache").iterdir()} - {source_digest()[:16]}
+    assert len(toy_caches) == 2  # one cache per source version of the toy package
