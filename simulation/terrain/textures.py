@@ -70,6 +70,18 @@ def _band_limit(img: np.ndarray) -> np.ndarray:
     return np.real(np.fft.ifft2(np.fft.fft2(img) * low * high))
 
 
+def _pack_tile(height: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """The (S, S, 4) tile of a periodic micro-relief and albedo (module docstring)."""
+    gu, gv = periodic_gradient(height)
+    rms = np.sqrt(np.mean(gu**2 + gv**2) / 2.0)
+    out = np.empty((*height.shape, 4), dtype=np.float32)
+    out[..., 0] = gu / rms
+    out[..., 1] = gv / rms
+    out[..., 2] = np.clip(albedo, 0.0, 1.0)
+    out[..., 3] = (height - height.min()) / max(np.ptp(height), 1e-9)
+    return out
+
+
 def make_surface_texture(seed: int, size: int = 256) -> np.ndarray:
     """The tiling texture (see module docstring), deterministic in ``seed``."""
     rng = np.random.default_rng([seed, 0x7E5])
@@ -80,14 +92,7 @@ def make_surface_texture(seed: int, size: int = 256) -> np.ndarray:
     height = _band_limit(0.6 * relief + 0.6 * np.clip(p_height, 0.0, 1.0))
     albedo = albedo / max(np.percentile(np.abs(albedo), 99.5), 1e-9)
     albedo = 0.5 + 0.5 * (albedo - albedo.mean())  # mean exactly 0.5: the shader's fade target
-    gu, gv = periodic_gradient(height)
-    rms = np.sqrt(np.mean(gu**2 + gv**2) / 2.0)
-    out = np.empty((size, size, 4), dtype=np.float32)
-    out[..., 0] = gu / rms
-    out[..., 1] = gv / rms
-    out[..., 2] = np.clip(albedo, 0.0, 1.0)
-    out[..., 3] = (height - height.min()) / max(np.ptp(height), 1e-9)
-    return out
+    return _pack_tile(height, albedo)
 
 
 #: Ripple crests per ripple tile (the tile is RIPPLES_PER_TILE wavelengths wide).
@@ -122,11 +127,4 @@ def make_ripple_texture(seed: int, size: int = 256) -> np.ndarray:
     albedo = band(0.6 * height / np.max(np.abs(height)) + 0.5 * (grain - 0.5))
     albedo = albedo / max(np.percentile(np.abs(albedo - albedo.mean()), 99.5), 1e-9)
     albedo = 0.5 + 0.5 * (albedo - albedo.mean())
-    gu, gv = periodic_gradient(height)
-    rms = np.sqrt(np.mean(gu**2 + gv**2) / 2.0)
-    out = np.empty((size, size, 4), dtype=np.float32)
-    out[..., 0] = gu / rms
-    out[..., 1] = gv / rms
-    out[..., 2] = np.clip(albedo, 0.0, 1.0)
-    out[..., 3] = (height - height.min()) / max(np.ptp(height), 1e-9)
-    return out
+    return _pack_tile(height, albedo)
