@@ -109,6 +109,25 @@ def field_types(cls: type) -> dict[str, Any]:
     return {f.name: normalise_type(hints[f.name]) for f in dataclasses.fields(cls)}
 
 
+def validate_instance(
+    instance: Any,
+    section: str,
+    meta: Callable[[dataclasses.Field], Mapping[str, Any]] = lambda f: f.metadata,
+) -> None:
+    """Check every field of a (frozen) dataclass instance: type and range from ``meta(field)``
+    (default: the field's own metadata); ints given for ``float`` keys become floats. Raises
+    ``ConfigError("[section] key: must be ...")``."""
+    from granite.errors import ConfigError
+
+    types = field_types(type(instance))
+    for f in dataclasses.fields(instance):
+        current = getattr(instance, f.name)
+        value = check_value(current, types[f.name], dict(meta(f)), f"[{section}] {f.name}:",
+                            ConfigError)
+        if value is not current:
+            object.__setattr__(instance, f.name, value)
+
+
 def check_table(
     cls: type,
     table: Any,

@@ -9,10 +9,10 @@ residuals ``r``; poses are in map units (metres after the scale fix), inverse di
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Mapping
 from typing import Any
 
+from granite.config_schema import spec_field, validate_instance
 from granite.errors import ConfigError
 
 
@@ -57,57 +57,32 @@ class BackendConfig:
             ``sqrt(|t_k - t_last|) sum_j 1 / (|t_k - t_j| + marg_distance_epsilon)`` [map units].
     """
 
-    obs_std_dev: float = 0.5
-    huber_threshold: float = 1.0
-    infinite_obs_factor: float = 0.01
-    no_motion_weight: float = 1e-12
-    initial_pose_weight: float = 1e8
-    scale_fix_weight: float = 1e8
-    max_inv_dist: float = 5.0
-    max_iterations: int = 7
-    step_tolerance: float = 1e-4
-    outlier_threshold: float = 3.0
-    landmark_damping: float = 1e-9
-    use_lm: bool = False
-    lm_calls_after_failed_step: int = 40
-    lm_lambda_init: float = 1e-4
-    lm_lambda_min: float = 1e-12
-    lm_lambda_max: float = 1e4
-    lm_lambda_decrease: float = 3.0
-    lm_lambda_increase: float = 10.0
-    max_frames: int = 3
-    max_keyframes: int = 11
-    marg_seen_fraction: float = 0.05
-    marg_distance_epsilon: float = 1e-5
+    obs_std_dev: float = spec_field(0.5, 0.0, 1e4, lo_open=True)
+    huber_threshold: float = spec_field(1.0, 0.0, 1e6, lo_open=True)
+    infinite_obs_factor: float = spec_field(0.01, 0.0, 1e6)
+    no_motion_weight: float = spec_field(1e-12, 0.0, 1e20)
+    initial_pose_weight: float = spec_field(1e8, 0.0, 1e20)
+    scale_fix_weight: float = spec_field(1e8, 0.0, 1e20)
+    max_inv_dist: float = spec_field(5.0, 0.0, 1e6, lo_open=True)
+    max_iterations: int = spec_field(7, 1, 1000)
+    step_tolerance: float = spec_field(1e-4, 0.0, 1e3)
+    outlier_threshold: float = spec_field(3.0, 0.0, 1e6, lo_open=True)
+    landmark_damping: float = spec_field(1e-9, 0.0, 1e6, origin="ours",
+                                         doc="numerical: damps the step only")
+    use_lm: bool = spec_field(False)
+    lm_calls_after_failed_step: int = spec_field(40, 0, 1000000, origin="ours")
+    lm_lambda_init: float = spec_field(1e-4, 0.0, 1e20, lo_open=True, origin="ours")
+    lm_lambda_min: float = spec_field(1e-12, 0.0, 1e20, lo_open=True, origin="ours")
+    lm_lambda_max: float = spec_field(1e4, 0.0, 1e20, lo_open=True, origin="ours")
+    lm_lambda_decrease: float = spec_field(3.0, 1.0, 1e6, lo_open=True, origin="ours")
+    lm_lambda_increase: float = spec_field(10.0, 1.0, 1e6, lo_open=True, origin="ours")
+    max_frames: int = spec_field(3, 1, 1000)
+    max_keyframes: int = spec_field(11, 2, 1000)
+    marg_seen_fraction: float = spec_field(0.05, 0.0, 1.0)
+    marg_distance_epsilon: float = spec_field(1e-5, 0.0, 1e6, lo_open=True)
 
     def __post_init__(self) -> None:
-        positive = ("obs_std_dev", "huber_threshold", "max_inv_dist", "outlier_threshold",
-                    "lm_lambda_init", "lm_lambda_min", "lm_lambda_max", "marg_distance_epsilon")
-        non_negative = ("infinite_obs_factor", "no_motion_weight", "initial_pose_weight",
-                        "scale_fix_weight", "step_tolerance", "landmark_damping",
-                        "marg_seen_fraction")
-        for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"backend: {name} must be a positive number, got {value!r}")
-        for name in non_negative:
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ConfigError(f"backend: {name} must be a number >= 0, got {value!r}")
-        for name in ("max_iterations", "max_frames", "max_keyframes"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigError(f"backend: {name} must be an integer >= 1, got {value!r}")
-        for name in ("lm_lambda_decrease", "lm_lambda_increase"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 1):
-                raise ConfigError(f"backend: {name} must be a number > 1, got {value!r}")
-        value = self.lm_calls_after_failed_step
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise ConfigError(f"backend: lm_calls_after_failed_step must be an integer >= 0, "
-                              f"got {value!r}")
-        if not isinstance(self.use_lm, bool):
-            raise ConfigError(f"backend: use_lm must be true or false, got {self.use_lm!r}")
+        validate_instance(self, "backend")
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> BackendConfig:

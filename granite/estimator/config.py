@@ -38,6 +38,7 @@ from granite.config_schema import (
     has_limits,
     limits,
     spec_field,
+    validate_instance,
 )
 from granite.errors import ConfigError
 from granite.estimator.initialization import InitializationConfig
@@ -120,30 +121,6 @@ SECTION_LIMITS: dict[str, dict[str, dict[str, Any]]] = {
         "guess_min_zncc": limits(-1.0, 1.0, origin="ours", reference=-1.0,
                                  doc="-1 disables; used only by motion-guided tracking"),
     },
-    "backend": {
-        "obs_std_dev": limits(0.0, 1e4, lo_open=True),
-        "huber_threshold": limits(0.0, 1e6, lo_open=True),
-        "infinite_obs_factor": limits(0.0, 1e6),
-        "no_motion_weight": limits(0.0, 1e20),
-        "initial_pose_weight": limits(0.0, 1e20),
-        "scale_fix_weight": limits(0.0, 1e20),
-        "max_inv_dist": limits(0.0, 1e6, lo_open=True),
-        "max_iterations": limits(1, 1000),
-        "step_tolerance": limits(0.0, 1e3),
-        "outlier_threshold": limits(0.0, 1e6, lo_open=True),
-        "landmark_damping": limits(0.0, 1e6, origin="ours", doc="numerical: damps the step only"),
-        "use_lm": limits(),
-        "lm_lambda_init": limits(0.0, 1e20, lo_open=True, origin="ours"),
-        "lm_lambda_min": limits(0.0, 1e20, lo_open=True, origin="ours"),
-        "lm_lambda_max": limits(0.0, 1e20, lo_open=True, origin="ours"),
-        "lm_lambda_decrease": limits(1.0, 1e6, lo_open=True, origin="ours"),
-        "lm_lambda_increase": limits(1.0, 1e6, lo_open=True, origin="ours"),
-        "lm_calls_after_failed_step": limits(0, 1000000, origin="ours"),
-        "max_frames": limits(1, 1000),
-        "max_keyframes": limits(2, 1000),
-        "marg_seen_fraction": limits(0.0, 1.0),
-        "marg_distance_epsilon": limits(0.0, 1e6, lo_open=True),
-    },
     "initialization": {
         "min_inliers": limits(5, 1000000),
         "min_parallax_deg": limits(0.0, 90.0, hi_open=True),
@@ -176,14 +153,9 @@ def _where(section: str, key: str) -> str:
 
 
 def validate_section(instance: Any, section: str) -> None:
-    """Check every field of a table's dataclass instance (type and range); ints given for
-    ``float`` keys become floats. Raises ``ConfigError("[section] key: must be ...")``."""
-    types = field_types(type(instance))
-    for f in dataclasses.fields(instance):
-        current = getattr(instance, f.name)
-        value = check_value(current, types[f.name], field_limits(section, f), _where(section, f.name), _error)
-        if value is not current:
-            object.__setattr__(instance, f.name, value)
+    """Check every field of a table's dataclass instance (type and range, the field's own
+    metadata or :data:`SECTION_LIMITS`); ints given for ``float`` keys become floats."""
+    validate_instance(instance, section, lambda f: field_limits(section, f))
 
 
 def _cross_checks(values: Mapping[str, Mapping[str, Any]]) -> None:
