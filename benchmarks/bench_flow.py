@@ -23,7 +23,10 @@ creation level c of the tracks, one markdown table:
   tracker (LK + the same forward-backward limit + our detector on the same grid) run over
   the same frames;
 - ground truth (where depth exists): error of the tracks that survived a step against the
-  ground-truth flow, level-0 pixels: median and share beyond 2 px, ours and OpenCV's.
+  ground-truth flow, level-0 pixels: median and share beyond 2 px, ours and OpenCV's; and
+  "in view", the per-step median share of the tracks whose ground-truth position in the next
+  frame is at least 3 px inside the image (with valid depth): no frame-to-frame tracker can
+  keep more.
 
 A second table gives the time per frame of our frontend (one core: numba kernels are
 single-threaded, NUMBA_NUM_THREADS=1, cv2.setNumThreads(1); median over frames, best of
@@ -285,6 +288,7 @@ class DatasetStats:
     fb_ours: list = field(default_factory=list)  # --diagnose: (levels, fb distance, gt error)
     fb_lk: list = field(default_factory=list)
     lk_chain: list = field(default_factory=list)
+    in_view: list = field(default_factory=list)  # per step: (levels, in view (N,)) where GT exists
 
 
 def analyse(seq: Sequence, config: OpticalFlowConfig, lk_levels: int, lk_window: int,
@@ -306,6 +310,9 @@ def analyse(seq: Sequence, config: OpticalFlowConfig, lk_levels: int, lk_window:
         stats.lk_ms.append(ms)
         if seq.gt is not None:
             uv_gt, ok = seq.gt(i, j, a.positions)
+            h, w = img_b.shape
+            inside = ok & (uv_gt[:, 0] >= 3) & (uv_gt[:, 1] >= 3) & (uv_gt[:, 0] <= w - 4) & (uv_gt[:, 1] <= h - 4)
+            stats.in_view.append((a.levels[ok], inside[ok]))
             e = np.linalg.norm(b.positions[ib] - uv_gt[ia], axis=1)
             stats.err_ours.append((a.levels[ia][ok[ia]], e[ok[ia]]))
             e_lk = np.linalg.norm(p1 - uv_gt, axis=1)
@@ -352,8 +359,9 @@ def _fmt(x: float, digits: int = 2) -> str:
 def table(all_stats: list[DatasetStats]) -> str:
     head = ("| dataset | level | tracks/frame | survival ours | survival OpenCV (same points) "
             "| survival OpenCV chain | track length ours | track length OpenCV chain "
-            "| GT err ours median px | ours > 2 px % | GT err OpenCV median px | OpenCV > 2 px % |")
-    lines = [head, "|" + " --- |" * 12]
+            "| GT err ours median px | ours > 2 px % | GT err OpenCV median px | OpenCV > 2 px % "
+            "| in view (GT) |")
+    lines = [head, "|" + " --- |" * 13]
     for s in all_stats:
         per_frame = [(r.ids, r.levels) for _, r in s.ours]
         present = sorted(set(np.concatenate([lv for _, lv in per_frame]).tolist())) if per_frame else []
@@ -364,9 +372,11 @@ def table(all_stats: list[DatasetStats]) -> str:
             c_surv, c_len, _ = survival_and_length(s.lk_chain, level)
             gt_ours = _err(s.err_ours, level) if s.seq.gt is not None else "- | -"
             gt_lk = _err(s.err_lk, level) if s.seq.gt is not None else "- | -"
+            view = [v[lv == level] if level is not None else v for lv, v in s.in_view]
+            view = _fmt(np.median([v.mean() for v in view if len(v)])) if any(len(v) for v in view) else "-"
             lines.append(
                 f"| {s.seq.name} | {'all' if level is None else level} | {count:.0f} | {_fmt(surv)} | "
-                f"{_fmt(lk_surv)} | {_fmt(c_surv)} | {_fmt(length, 0)} | {_fmt(c_len, 0)} | {gt_ours} | {gt_lk} |"
+                f"{_fmt(lk_surv)} | {_fmt(c_surv)} | {_fmt(length, 0)} | {_fmt(c_len, 0)} | {gt_ours} | {gt_lk} | {view} |"
             )
     return "\n".join(lines)
 

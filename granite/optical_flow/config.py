@@ -53,6 +53,26 @@ class OpticalFlowConfig:
             least this value; otherwise it is tracked as without a prediction. The backward
             pass of a guided track starts near the track's start, so a false match found from
             a wrong prediction can pass the forward-backward check; this rejects them.
+            The local-flow retry (below) applies the same test to its matches.
+        local_retry_rounds: not in the reference (0 disables, the reference). After the
+            other passes, the points still not tracked are tracked again from the median
+            displacement of their ``local_retry_neighbours`` nearest tracked points (forward
+            from ``p + g``, back from ``p' - g``, forward-backward check and
+            ``guess_min_zncc``); repeated this many times, each round using the tracks the
+            previous one added. For points whose coarse levels are unusable (near the
+            border, small or wide images) under motion that is not a common shift
+            (rotation, forward motion), where the global median-flow retry does not help.
+        local_retry_neighbours: number of nearest tracked points the local-flow guess is the
+            median of.
+        fb_noise_factor: not in the reference (0 = the fixed limit ``fb_threshold_sq``, the
+            reference). When > 0 the forward-backward limit of each track follows the
+            precision its patch can have in the current images: the squared distance must be
+            below ``fb_noise_factor**2 * (sigma_A**2 + sigma_B**2) * lambda_max(C) / mean**2``
+            (``sigma`` the noise of the creation level in each image, estimated per frame;
+            ``C`` the translation block of the template's ``(J^T J)^-1``, ``mean`` the patch
+            mean; see :mod:`granite.optical_flow.noise`), clipped to
+            ``[fb_threshold_sq, fb_max_sq]``.
+        fb_max_sq: upper bound of the noise-scaled limit (creation-level pixels²).
     """
 
     levels: int = 6
@@ -68,6 +88,10 @@ class OpticalFlowConfig:
     presmooth_sigma: float = 0.0
     retry_min_flow: float = 2.0
     guess_min_zncc: float = 0.9
+    local_retry_rounds: int = 0
+    local_retry_neighbours: int = 8
+    fb_noise_factor: float = 0.0
+    fb_max_sq: float = 0.3
 
     def __post_init__(self) -> None:
         _check_type(self)
@@ -87,6 +111,13 @@ class OpticalFlowConfig:
             (0.0 <= self.presmooth_sigma <= 5.0, "presmooth_sigma must be in [0, 5] (0 disables)"),
             (self.retry_min_flow >= 0.0, "retry_min_flow must be >= 0 (0 disables)"),
             (-1.0 <= self.guess_min_zncc <= 1.0, "guess_min_zncc must be in [-1, 1] (-1 disables)"),
+            (0 <= self.local_retry_rounds <= 10, "local_retry_rounds must be in [0, 10] (0 disables)"),
+            (3 <= self.local_retry_neighbours <= 64, "local_retry_neighbours must be in [3, 64]"),
+            (0.0 <= self.fb_noise_factor <= 100.0, "fb_noise_factor must be in [0, 100] (0 disables)"),
+            (
+                self.fb_noise_factor == 0.0 or self.fb_max_sq >= self.fb_threshold_sq,
+                "fb_max_sq must be >= fb_threshold_sq when fb_noise_factor > 0",
+            ),
         ]
         for ok, message in checks:
             if not ok:
