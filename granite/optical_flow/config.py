@@ -38,9 +38,9 @@ class OpticalFlowConfig:
         margin: a pattern sample (and a patch centre) is inside the image only if at least
             this far from the border (level pixels).
         presmooth_sigma: not in the reference (0 = off, the reference). Gaussian blur of the
-            input image (sigma in level-0 pixels) before the pyramid; 0.7 makes tracks on
-            noisy images (e.g. few-sample path-traced renders) survive the forward-backward
-            check far more often at equal accuracy.
+            input image (sigma in level-0 pixels) before the pyramid. The default 0.7 makes
+            level-0 tracks on noisy and real images survive the forward-backward check far
+            more often, at equal or better accuracy (``docs/optical_flow.md``).
         retry_min_flow: not in the reference (set 0 to disable). When the median
             displacement of the points tracked in a frame is at least this long (level-0
             pixels), the points that failed are tracked again starting from that
@@ -54,7 +54,7 @@ class OpticalFlowConfig:
             pass of a guided track starts near the track's start, so a false match found from
             a wrong prediction can pass the forward-backward check; this rejects them.
             The local-flow retry (below) applies the same test to its matches.
-        local_retry_rounds: not in the reference (0 disables, the reference). After the
+        local_retry_rounds: not in the reference (0 disables, the reference; default 1). After the
             other passes, the points still not tracked are tracked again from the median
             displacement of their ``local_retry_neighbours`` nearest tracked points (forward
             from ``p + g``, back from ``p' - g``, forward-backward check and
@@ -85,10 +85,10 @@ class OpticalFlowConfig:
     fast_min_threshold: int = 5
     border: int = 19
     margin: float = 2.0
-    presmooth_sigma: float = 0.0
+    presmooth_sigma: float = 0.7
     retry_min_flow: float = 2.0
     guess_min_zncc: float = 0.9
-    local_retry_rounds: int = 0
+    local_retry_rounds: int = 1
     local_retry_neighbours: int = 8
     fb_noise_factor: float = 0.0
     fb_max_sq: float = 0.3
