@@ -11,10 +11,15 @@ deviation in level pixels; it grows with the image noise and shrinks with the pa
 
 ``sigma_0`` is estimated per frame from the input image (Immerkaer's 3x3 operator, which
 cancels intensity planes, made robust to texture by taking the median absolute response;
-``median / (0.6745 * 6)`` is the noise standard deviation for white Gaussian noise), on every
-second pixel of every second row. ``sigma_l = gain_l * sigma_0``, where ``gain_l`` is the noise
-gain of the pyramid filters (pre-smoothing, ``l`` times ``pyrDown``) for white noise, measured
-once on a seeded noise image.
+``median / (0.6745 * 6)`` is the noise standard deviation for white Gaussian noise), on a grid
+of every ``stride``-th pixel. ``sigma_l = gain_l * sigma_0``, where ``gain_l`` is the exact
+noise gain of the pyramid filters (pre-smoothing, ``l`` times ``pyrDown``) for white noise.
+
+The model treats the pattern's samples as independent with the pixel noise. Bilinear
+interpolation averages neighbouring pixels, so a sample's noise is lower by
+``sqrt(sum of squared weights)``: 0.625 for the 0.75-scaled pattern on integer or
+half-integer centres, 0.67 on average; a test checks the predicted scatter with that factor.
+The factor of the noise-scaled forward-backward limit absorbs it.
 """
 
 from __future__ import annotations
@@ -99,22 +104,26 @@ def estimate_noise(image: np.ndarray, stride: int = 2) -> float:
 
 @functools.lru_cache(maxsize=16)
 def level_noise_gains(levels: int, presmooth_sigma: float) -> tuple[float, ...]:
-    """Noise standard deviation of each pyramid level per unit white noise in the input:
-    the pyramid of :func:`granite.optical_flow.pyramid.build_pyramid` (pre-smoothing, then
-    ``pyrDown``) applied to a seeded 512x512 white-noise image, measured away from the
-    borders."""
-    size = 512
-    rng = np.random.default_rng(20211)
-    level = rng.standard_normal((size, size)).astype(np.float32)
-    if presmooth_sigma > 0.0:
-        level = cv2.GaussianBlur(level, (0, 0), presmooth_sigma, borderType=cv2.BORDER_REFLECT_101)
+    """Noise standard deviation of each pyramid level per unit white noise in the input, for
+    the filters of :func:`granite.optical_flow.pyramid.build_pyramid` (pre-smoothing, then
+    ``pyrDown``), computed exactly from their impulse responses: the filters are separable,
+    so the 2-D gain is the product of two 1-D variance gains, each the sum over the ``2**l``
+    input phases of the energy of the response to a line impulse (OpenCV's own filters run
+    on a 16-row image whose rows are equal)."""
+    size = 16 * 2 ** max(levels, 1) + 64
     gains = []
     for lvl in range(levels):
-        if lvl:
-            level = cv2.pyrDown(level)
-        b = max(1, level.shape[0] // 8)
-        core = level[b:-b, b:-b] if level.shape[0] > 2 * b + 4 else level
-        gains.append(float(core.std()))
+        total = 0.0
+        for phase in range(2**lvl):
+            img = np.zeros((16, size), np.float32)
+            img[:, size // 2 + phase] = 1.0
+            if presmooth_sigma > 0.0:
+                img = cv2.GaussianBlur(img, (0, 0), presmooth_sigma, borderType=cv2.BORDER_REFLECT_101)
+            for _ in range(lvl):
+                img = cv2.pyrDown(img)
+            row = img[img.shape[0] // 2].astype(np.float64)
+            total += float(np.sum(row * row))
+        gains.append(total)  # 1-D variance gain; the 2-D standard deviation gain is the same number
     return tuple(gains)
 
 

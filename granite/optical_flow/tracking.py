@@ -73,6 +73,7 @@ def track_level(
 def track_point(
     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
     x0, y0, gx, gy, level, pattern, radius, margin, iterations, st, data, valid, jac, aux,
+    top=-1,
 ):
     """Track the point (x0, y0) of image A (level-0 pixels, created at ``level``) into image B,
     starting from the guess (gx, gy). Returns (ok, x, y, theta) in level-0 pixels, theta the
@@ -81,13 +82,15 @@ def track_point(
     ``st`` (L,) int8, ``data`` (L, P), ``valid`` (L, P), ``jac`` (L, P, 3), ``aux`` (L, 5, 3)
     hold this point's templates in image A per level: ``st[l]`` is the return value of
     :func:`make_template` (0 invalid, 1 valid, 2 valid and complete) or -1 (not computed
-    yet: computed here and stored).
+    yet: computed here and stored). ``top`` >= 0 starts at that level instead of the
+    coarsest.
     """
     tx = gx
     ty = gy
     theta = 0.0
     n_levels = offs_a.shape[0]
-    for lvl in range(n_levels - 1, level - 1, -1):
+    first = n_levels - 1 if top < 0 else min(top, n_levels - 1)
+    for lvl in range(first, level - 1, -1):
         scale = float(1 << lvl)
         if st[lvl] < 0:
             st[lvl] = make_template(
@@ -133,6 +136,14 @@ PASS_LOCAL = 3  # the median displacement of each point's nearest tracked neighb
 #: A local-flow guess shorter than this (level-0 pixels) is not tried: the zero-motion pass
 #: already started within its convergence basin.
 _LOCAL_MIN_FLOW = 1.0
+#: Nor one within this distance (level-0 pixels, squared) of where the point's earlier
+#: forward attempt ended: a retry from there converges to the same place.
+_LOCAL_SAME_END_SQ = 2.0**2
+#: A local-flow retry tracks from the guess on the creation level c and this many levels above
+#: it only (the guess is within a few pixels; coarser levels cost as much as fine ones and are
+#: the ones that do not fit the points that need the retry). The reference also rejects a
+#: track that fails on level c + 1.
+_LOCAL_LEVELS_ABOVE = 1
 
 _NO_GUESS = np.zeros((0, 2))
 _ORDER_UNGUIDED = np.array([PASS_ZERO, PASS_MEDIAN], dtype=np.int64)
@@ -190,8 +201,10 @@ def track_points(
             is not tracked yet from the median displacement (per axis) of the
             ``local_neighbours`` nearest points (level-0 distance) tracked by the earlier
             passes, forward from ``p + g`` and back from ``p' - g`` like the guided pass and
-            under the same patch-correlation test (``min_zncc_guess``). Needs at least 3
-            tracked points; guesses shorter than 1 px are skipped.
+            under the same patch-correlation test (``min_zncc_guess``), on the creation level
+            and the one above only. Needs at least 3 tracked points; guesses shorter than
+            1 px, or within 2 px of where the point's earlier forward attempt ended, are
+            skipped.
     Returns:
         (new_points (N, 2), theta (N,), status (N,) bool): status is True when the point was
         tracked A -> B and back B -> A to within ``fb_threshold_sq`` (squared distance in
@@ -294,18 +307,19 @@ def _track_points(
             y0 = points[k, 1]
             lvl = levels[k]
             row = rows_a[k]
+            top = lvl + _LOCAL_LEVELS_ABOVE if mode == PASS_LOCAL else -1
             if row >= 0:
                 ok, x1, y1, t1 = track_point(
                     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
                     x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, margin, iterations,
-                    st_a[row], data_a[row], valid_a[row], jac_a[row], aux_a[row],
+                    st_a[row], data_a[row], valid_a[row], jac_a[row], aux_a[row], top,
                 )
             else:
                 st_s[:] = -1
                 ok, x1, y1, t1 = track_point(
                     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
                     x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, margin, iterations,
-                    st_s, data_s, valid_s, jac_s, aux_s,
+                    st_s, data_s, valid_s, jac_s, aux_s, top,
                 )
             if ok and per_point and min_zncc_guess > -1.0:
                 # The backward pass below starts near the start point, so a false match
@@ -335,7 +349,7 @@ def _track_points(
             ok, xb, yb, _ = track_point(
                 buf_b, offs_b, ws_b, hs_b, buf_a, offs_a, ws_a, hs_a,
                 x1, y1, x1 - flow_x, y1 - flow_y, lvl, pattern, radius, margin, iterations,
-                st_b[k], data_b[k], valid_b[k], jac_b[k], aux_b[k],
+                st_b[k], data_b[k], valid_b[k], jac_b[k], aux_b[k], top,
             )
             if not ok:
                 continue
@@ -353,9 +367,11 @@ def _track_points(
 @njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
 def _local_guesses(points, out, status, k_nearest, guess) -> bool:
     """Fill ``guess`` (N, 2) for the points not tracked (``status`` False) with the per-axis
-    median displacement ``out - points`` of their ``k_nearest`` nearest tracked points (NaN:
-    none, or shorter than :data:`_LOCAL_MIN_FLOW`). Returns False when there is nothing to
-    try (fewer than 3 tracked points, or none untracked)."""
+    median displacement ``out - points`` of their ``k_nearest`` nearest tracked points (ties
+    in distance: lower index first). NaN: a tracked point, a guess shorter than
+    :data:`_LOCAL_MIN_FLOW`, or one ending within ``sqrt(_LOCAL_SAME_END_SQ)`` of the point's
+    own ``out``. Returns False when there is nothing to try (fewer than 3 tracked points, or
+    none untracked)."""
     n = points.shape[0]
     tracked = np.flatnonzero(status)
     m = tracked.shape[0]
@@ -394,7 +410,11 @@ def _local_guesses(points, out, status, k_nearest, guess) -> bool:
             dy[j] = out[t, 1] - points[t, 1]
         gx = np.median(dx)
         gy = np.median(dy)
-        if gx * gx + gy * gy >= _LOCAL_MIN_FLOW * _LOCAL_MIN_FLOW:
+        # where an earlier pass ended (its forward result) near the guessed position, a retry
+        # from there would converge to the same place
+        ex = points[k, 0] + gx - out[k, 0]
+        ey = points[k, 1] + gy - out[k, 1]
+        if gx * gx + gy * gy >= _LOCAL_MIN_FLOW * _LOCAL_MIN_FLOW and ex * ex + ey * ey >= _LOCAL_SAME_END_SQ:
             guess[k, 0] = gx
             guess[k, 1] = gy
     return True
