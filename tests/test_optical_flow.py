@@ -177,12 +177,16 @@ def test_coarse_to_fine_is_what_follows_large_motion(texture):
 
 def test_median_flow_retry_recovers_points_without_usable_coarse_levels(texture):
     """80 px: only points whose coarsest levels hold a whole patch follow on the first pass;
-    the retry from their median displacement recovers most of the others."""
+    the retry from their median displacement recovers most of the others. (Reference pyramid,
+    no pre-smoothing: on this smooth synthetic texture, pre-smoothing lets a few zero-motion
+    tracks settle in a false minimum that the forward-backward check accepts; see
+    docs/optical_flow.md.)"""
     affine = similarity(80.0, -20.0, np.radians(2), 1.0, CENTRE)
     img1 = warp(texture, affine)
     counts = {}
     for retry in (0.0, 2.0):
-        p0, p1, r0, _ = track_pair(texture, img1, OpticalFlowConfig(retry_min_flow=retry))
+        config = OpticalFlowConfig(retry_min_flow=retry, local_retry_rounds=0, presmooth_sigma=0.0)
+        p0, p1, r0, _ = track_pair(texture, img1, config)
         truth = apply_affine(affine, p0)
         # The warp mirrors the image at its border: judge points that stay in view.
         visible = (truth >= 10).all(axis=1) & (truth[:, 0] < W - 10) & (truth[:, 1] < H - 10)

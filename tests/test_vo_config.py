@@ -41,10 +41,12 @@ def test_reference_file_is_the_defaults_with_our_additions_off():
                for key, value in dataclasses.asdict(getattr(ref, name)).items()
                if value != getattr(getattr(default, name), key)}
     assert changed == {("optical_flow", "retry_min_flow"), ("optical_flow", "guess_min_zncc"),
+                       ("optical_flow", "presmooth_sigma"), ("optical_flow", "local_retry_rounds"),
                        ("estimator", "constant_velocity"), ("estimator", "motion_guided_tracking"),
                        ("estimator", "reinit_keeps_scale")}
     # The features are really off: no median-flow retry, no guided pass, no constant velocity.
     assert ref.optical_flow.retry_min_flow == 0.0 and ref.optical_flow.guess_min_zncc == -1.0
+    assert ref.optical_flow.presmooth_sigma == 0.0 and ref.optical_flow.local_retry_rounds == 0
     assert not (ref.estimator.constant_velocity or ref.estimator.motion_guided_tracking
                 or ref.estimator.reinit_keeps_scale)
 

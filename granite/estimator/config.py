@@ -105,22 +105,6 @@ class EstimatorConfig:
 #: Ranges of the keys of the tables whose dataclasses (owned by other packages) carry no
 #: validation metadata. A field's own metadata, when it has a range, takes precedence.
 SECTION_LIMITS: dict[str, dict[str, dict[str, Any]]] = {
-    "optical_flow": {
-        "levels": limits(1, 12),
-        "grid_size": limits(4, 100000),
-        "detect_all_levels": limits(),
-        "pattern_scale": limits(0.0, 4.0, lo_open=True),
-        "iterations": limits(1, 1000),
-        "fb_threshold_sq": limits(0.0, 1e4, lo_open=True),
-        "fast_threshold": limits(1, 255),
-        "fast_min_threshold": limits(1, 255, doc="at most fast_threshold"),
-        "border": limits(3, 100000),
-        "margin": limits(2.0, 1e4),
-        "presmooth_sigma": limits(0.0, 5.0, origin="ours", doc="0 disables (the reference)"),
-        "retry_min_flow": limits(0.0, 1e4, origin="ours", reference=0.0, doc="0 disables"),
-        "guess_min_zncc": limits(-1.0, 1.0, origin="ours", reference=-1.0,
-                                 doc="-1 disables; used only by motion-guided tracking"),
-    },
     "initialization": {
         "min_inliers": limits(5, 1000000),
         "min_parallax_deg": limits(0.0, 90.0, hi_open=True),

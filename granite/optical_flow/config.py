@@ -11,6 +11,7 @@ import dataclasses
 from dataclasses import dataclass, fields
 from typing import Any, Mapping
 
+from granite.config_schema import spec_field, validate_instance
 from granite.errors import ConfigError
 
 
@@ -38,9 +39,9 @@ class OpticalFlowConfig:
         margin: a pattern sample (and a patch centre) is inside the image only if at least
             this far from the border (level pixels).
         presmooth_sigma: not in the reference (0 = off, the reference). Gaussian blur of the
-            input image (sigma in level-0 pixels) before the pyramid; 0.7 makes tracks on
-            noisy images (e.g. few-sample path-traced renders) survive the forward-backward
-            check far more often at equal accuracy.
+            input image (sigma in level-0 pixels) before the pyramid. The default 0.7 makes
+            level-0 tracks on noisy and real images survive the forward-backward check far
+            more often, at equal or better accuracy (``docs/optical_flow.md``).
         retry_min_flow: not in the reference (set 0 to disable). When the median
             displacement of the points tracked in a frame is at least this long (level-0
             pixels), the points that failed are tracked again starting from that
@@ -53,44 +54,57 @@ class OpticalFlowConfig:
             least this value; otherwise it is tracked as without a prediction. The backward
             pass of a guided track starts near the track's start, so a false match found from
             a wrong prediction can pass the forward-backward check; this rejects them.
+            The local-flow retry (below) applies the same test to its matches.
+        local_retry_rounds: not in the reference (0 disables, the reference; default 1). After the
+            other passes, the points still not tracked are tracked again from the median
+            displacement of their ``local_retry_neighbours`` nearest tracked points (forward
+            from ``p + g``, back from ``p' - g``, forward-backward check and
+            ``guess_min_zncc``); repeated this many times, each round using the tracks the
+            previous one added. For points whose coarse levels are unusable (near the
+            border, small or wide images) under motion that is not a common shift
+            (rotation, forward motion), where the global median-flow retry does not help.
+        local_retry_neighbours: number of nearest tracked points the local-flow guess is the
+            median of.
+        fb_noise_factor: not in the reference (0 = the fixed limit ``fb_threshold_sq``, the
+            reference). When > 0 the forward-backward limit of each track follows the
+            precision its patch can have in the current images: the squared distance must be
+            below ``fb_noise_factor**2 * (sigma_A**2 + sigma_B**2) * lambda_max(C) / mean**2``
+            (``sigma`` the noise of the creation level in each image, estimated per frame;
+            ``C`` the translation block of the template's ``(J^T J)^-1``, ``mean`` the patch
+            mean; see :mod:`granite.optical_flow.noise`), clipped to
+            ``[fb_threshold_sq, fb_max_sq]``.
+        fb_max_sq: upper bound of the noise-scaled limit (creation-level pixels²).
     """
 
-    levels: int = 6
-    grid_size: int = 40
-    detect_all_levels: bool = True
-    pattern_scale: float = 0.75
-    iterations: int = 6
-    fb_threshold_sq: float = 0.03
-    fast_threshold: int = 40
-    fast_min_threshold: int = 5
-    border: int = 19
-    margin: float = 2.0
-    presmooth_sigma: float = 0.0
-    retry_min_flow: float = 2.0
-    guess_min_zncc: float = 0.9
+    levels: int = spec_field(6, 1, 12)
+    grid_size: int = spec_field(40, 4, 100000)
+    detect_all_levels: bool = spec_field(True)
+    pattern_scale: float = spec_field(0.75, 0.0, 4.0, lo_open=True)
+    iterations: int = spec_field(6, 1, 1000)
+    fb_threshold_sq: float = spec_field(0.03, 0.0, 1e12, lo_open=True)
+    fast_threshold: int = spec_field(40, 1, 255)
+    fast_min_threshold: int = spec_field(5, 1, 255, doc="at most fast_threshold")
+    border: int = spec_field(19, 3, 100000, doc="FAST needs a 3 px ring")
+    margin: float = spec_field(2.0, 2.0, 1e4, doc="gradients read two pixels around a sample")
+    presmooth_sigma: float = spec_field(0.7, 0.0, 5.0, origin="ours", reference=0.0,
+                                        doc="0 disables (the reference)")
+    retry_min_flow: float = spec_field(2.0, 0.0, 1e4, origin="ours", reference=0.0,
+                                       doc="0 disables")
+    guess_min_zncc: float = spec_field(0.9, -1.0, 1.0, origin="ours", reference=-1.0,
+                                       doc="-1 disables; used by guided and local-flow tracking")
+    local_retry_rounds: int = spec_field(1, 0, 10, origin="ours", reference=0, doc="0 disables")
+    local_retry_neighbours: int = spec_field(8, 3, 64, origin="ours")
+    fb_noise_factor: float = spec_field(0.0, 0.0, 100.0, origin="ours", doc="0 disables")
+    fb_max_sq: float = spec_field(0.3, 0.0, 1e4, lo_open=True, origin="ours")
 
     def __post_init__(self) -> None:
-        _check_type(self)
-        checks = [
-            (1 <= self.levels <= 12, "levels must be in [1, 12]"),
-            (self.grid_size >= 4, "grid_size must be >= 4"),
-            (0.0 < self.pattern_scale <= 4.0, "pattern_scale must be in (0, 4]"),
-            (self.iterations >= 1, "iterations must be >= 1"),
-            (self.fb_threshold_sq > 0.0, "fb_threshold_sq must be > 0"),
-            (1 <= self.fast_threshold <= 255, "fast_threshold must be in [1, 255]"),
-            (
-                1 <= self.fast_min_threshold <= self.fast_threshold,
-                "fast_min_threshold must be in [1, fast_threshold]",
-            ),
-            (self.border >= 3, "border must be >= 3 (FAST needs a 3 px ring)"),
-            (self.margin >= 2.0, "margin must be >= 2 (gradients read two pixels around a sample)"),
-            (0.0 <= self.presmooth_sigma <= 5.0, "presmooth_sigma must be in [0, 5] (0 disables)"),
-            (self.retry_min_flow >= 0.0, "retry_min_flow must be >= 0 (0 disables)"),
-            (-1.0 <= self.guess_min_zncc <= 1.0, "guess_min_zncc must be in [-1, 1] (-1 disables)"),
-        ]
-        for ok, message in checks:
-            if not ok:
-                raise ConfigError(f"optical flow: {message}")
+        validate_instance(self, "optical_flow")
+        if self.fast_min_threshold > self.fast_threshold:
+            raise ConfigError("[optical_flow] fast_min_threshold: must not exceed fast_threshold "
+                              f"({self.fast_threshold}), got {self.fast_min_threshold}")
+        if self.fb_noise_factor > 0.0 and self.fb_max_sq < self.fb_threshold_sq:
+            raise ConfigError("[optical_flow] fb_max_sq: must be >= fb_threshold_sq when "
+                              f"fb_noise_factor > 0, got {self.fb_max_sq!r}")
 
     @property
     def detection_levels(self) -> tuple[int, ...]:
@@ -123,22 +137,3 @@ class OpticalFlowConfig:
     def to_dict(self) -> dict[str, Any]:
         """All fields as a plain dict (inverse of :meth:`from_dict`)."""
         return dataclasses.asdict(self)
-
-
-def _check_type(config: OpticalFlowConfig) -> None:
-    for f in fields(config):
-        value = getattr(config, f.name)
-        if f.type in ("int", int):
-            ok = isinstance(value, int) and not isinstance(value, bool)
-        elif f.type in ("float", float):
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-            if ok:
-                object.__setattr__(config, f.name, float(value))
-        elif f.type in ("bool", bool):
-            ok = isinstance(value, bool)
-        else:  # pragma: no cover - all fields are covered above
-            ok = True
-        if not ok:
-            raise ConfigError(
-                f"optical flow: {f.name} must be of type {f.type}, got {type(value).__name__} {value!r}"
-            )

@@ -26,9 +26,10 @@ import numpy as np
 
 from granite.optical_flow.config import OpticalFlowConfig
 from granite.optical_flow.detection import detect_new_points
+from granite.optical_flow.noise import estimate_noise, level_noise_gains
 from granite.optical_flow.patterns import pattern52
 from granite.optical_flow.pyramid import SUPPORTED_DTYPES, ImagePyramid, build_pyramid
-from granite.optical_flow.tracking import new_template_cache, track_points
+from granite.optical_flow.tracking import new_template_cache, pass_order, track_points
 
 
 class FrameRejectedWarning(UserWarning):
@@ -84,6 +85,9 @@ class FrameToFrameOpticalFlow:
         self._rows = np.zeros(0, dtype=np.int64)
         self._storage: list[tuple[np.ndarray, ...] | None] = [None, None]
         self._active = 0
+        self._noise: float = 0.0  # noise sigma of the reference frame (input units)
+        self._needs_noise = self.config.fb_noise_factor > 0.0
+        self._gains = np.asarray(level_noise_gains(self.config.levels, self.config.presmooth_sigma))
 
     @property
     def next_id(self) -> int:
@@ -134,6 +138,7 @@ class FrameToFrameOpticalFlow:
 
         cfg = self.config
         pyramid = build_pyramid(image, cfg.levels, cfg.presmooth_sigma)
+        noise = estimate_noise(image, stride=4) if self._needs_noise else 0.0
         t1 = time.perf_counter()
 
         ids, points, levels, angles = self._ids, self._points, self._levels, self._angles
@@ -141,12 +146,19 @@ class FrameToFrameOpticalFlow:
         rows = np.zeros(0, dtype=np.int64)
         if self._pyramid is not None and len(ids):
             prev = self._pyramid
+            guess = self._guess(predicted)
+            fb_var = None
+            if cfg.fb_noise_factor > 0.0:
+                fb_var = cfg.fb_noise_factor**2 * (self._noise**2 + noise**2) * self._gains**2
             new_points, dtheta, status = track_points(
                 prev.data, prev.offsets, prev.widths, prev.heights,
                 pyramid.data, pyramid.offsets, pyramid.widths, pyramid.heights,
                 points, levels, self._rows, *self._cache, *cache,
                 self._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow,
-                guess=self._guess(predicted), min_zncc_guess=cfg.guess_min_zncc,
+                guess=guess, min_zncc_guess=cfg.guess_min_zncc,
+                order=pass_order(guess is not None, cfg.local_retry_rounds),
+                local_neighbours=cfg.local_retry_neighbours,
+                fb_var=fb_var, fb_max_sq=cfg.fb_max_sq,
             )
             ids, points, levels = ids[status], new_points[status], levels[status]
             angles = angles[status] + dtheta[status]
@@ -162,6 +174,7 @@ class FrameToFrameOpticalFlow:
         t3 = time.perf_counter()
 
         self._pyramid = pyramid
+        self._noise = noise
         self._cache = cache
         self._rows = np.concatenate([rows, np.full(n_new, -1, dtype=np.int64)])
         self._ids = np.concatenate([ids, det_ids])

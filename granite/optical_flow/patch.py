@@ -8,7 +8,8 @@ intensities are divided by their mean (invariance to gain changes). The template
 in the reference image, ``theta = 0``) stores the normalised intensities ``t``, the Jacobian
 ``J`` (P x 3) of the normalised intensities w.r.t. an SE(2) increment ``(tx, ty, theta)``
 applied on the pattern side (including the change of the mean), ``(J^T J)^-1`` and ``J^T t``:
-everything the inverse-compositional Gauss-Newton step needs.
+everything the inverse-compositional Gauss-Newton step needs; and the patch mean (for the
+expected tracking precision, :mod:`granite.optical_flow.noise`).
 """
 
 from __future__ import annotations
@@ -82,7 +83,8 @@ def make_template(buf, off, w, h, cx, cy, pattern, margin, data, valid, jac, aux
 
     Outputs (preallocated float32 except ``valid``): ``data`` (P,) normalised intensities
     ``t``, ``valid`` (P,) bool, ``jac`` (P, 3) Jacobian ``J`` of the normalised intensities,
-    ``aux`` (4, 3): rows 0-2 ``(J^T J)^-1``, row 3 ``J^T t``. Returns 0 (invalid) when the
+    ``aux`` (5, 3): rows 0-2 ``(J^T J)^-1``, row 3 ``J^T t``, ``aux[4, 0]`` the patch mean
+    (input intensity units; ``aux[4, 1:]`` zero). Returns 0 (invalid) when the
     centre or at least half of the pattern is not inside the image, the patch mean is not
     positive, or ``J^T J`` is singular (a textureless patch); 2 when every sample is valid,
     else 1.
@@ -171,6 +173,9 @@ def make_template(buf, off, w, h, cx, cy, pattern, margin, data, valid, jac, aux
     aux[3, 0] = jt0
     aux[3, 1] = jt1
     aux[3, 2] = jt2
+    aux[4, 0] = total / n_valid
+    aux[4, 1] = 0.0
+    aux[4, 2] = 0.0
     return 2 if n_valid == n else 1
 
 

@@ -55,3 +55,15 @@ def warp(image: np.ndarray, affine: np.ndarray, size: tuple[int, int] | None = N
 def apply_affine(affine: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Map (N, 2) points with a 2x3 affine."""
     return points @ affine[:, :2].T + affine[:, 2]
+
+
+def add_noise(image: np.ndarray, read_sigma: float, gain: float = 0.0, seed=0) -> np.ndarray:
+    """Seeded sensor-like noise on an 8- or 16-bit image: Gaussian with variance
+    ``read_sigma**2 + gain * I`` (intensity units: read noise plus a Poisson-like,
+    signal-dependent shot-noise term), rounded and saturated to the input dtype. ``seed`` is
+    anything :func:`numpy.random.default_rng` accepts (e.g. ``(seed, frame_index)``)."""
+    rng = np.random.default_rng(seed)
+    img = image.astype(np.float64)
+    sd = np.sqrt(read_sigma**2 + gain * np.maximum(img, 0.0))
+    top = float(np.iinfo(image.dtype).max)
+    return np.clip(np.rint(img + sd * rng.standard_normal(img.shape)), 0.0, top).astype(image.dtype)

@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit
 
 from granite.optical_flow.patch import FASTMATH as _FASTMATH
+from granite.optical_flow.noise import translation_lambda_max
 from granite.optical_flow.patch import in_bounds, make_template, patch_increment, patch_zncc
 
 #: Gauss-Newton stops early once a step is below 0.01 pixels on the creation level of a patch
@@ -72,21 +73,24 @@ def track_level(
 def track_point(
     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
     x0, y0, gx, gy, level, pattern, radius, margin, iterations, st, data, valid, jac, aux,
+    top=-1,
 ):
     """Track the point (x0, y0) of image A (level-0 pixels, created at ``level``) into image B,
     starting from the guess (gx, gy). Returns (ok, x, y, theta) in level-0 pixels, theta the
     patch rotation from A to B.
 
-    ``st`` (L,) int8, ``data`` (L, P), ``valid`` (L, P), ``jac`` (L, P, 3), ``aux`` (L, 4, 3)
+    ``st`` (L,) int8, ``data`` (L, P), ``valid`` (L, P), ``jac`` (L, P, 3), ``aux`` (L, 5, 3)
     hold this point's templates in image A per level: ``st[l]`` is the return value of
     :func:`make_template` (0 invalid, 1 valid, 2 valid and complete) or -1 (not computed
-    yet: computed here and stored).
+    yet: computed here and stored). ``top`` >= 0 starts at that level instead of the
+    coarsest.
     """
     tx = gx
     ty = gy
     theta = 0.0
     n_levels = offs_a.shape[0]
-    for lvl in range(n_levels - 1, level - 1, -1):
+    first = n_levels - 1 if top < 0 else min(top, n_levels - 1)
+    for lvl in range(first, level - 1, -1):
         scale = float(1 << lvl)
         if st[lvl] < 0:
             st[lvl] = make_template(
@@ -118,7 +122,7 @@ def new_template_cache(num_points: int, num_levels: int, num_samples: int):
         np.empty((num_points, num_levels, num_samples), dtype=np.float32),
         np.empty((num_points, num_levels, num_samples), dtype=np.bool_),
         np.empty((num_points, num_levels, num_samples, 3), dtype=np.float32),
-        np.empty((num_points, num_levels, 4, 3), dtype=np.float32),
+        np.empty((num_points, num_levels, 5, 3), dtype=np.float32),
     )
 
 
@@ -127,10 +131,30 @@ def new_template_cache(num_points: int, num_levels: int, num_samples: int):
 PASS_ZERO = 0  # zero motion (the reference)
 PASS_GUESS = 1  # the caller's per-point predicted displacement
 PASS_MEDIAN = 2  # the median displacement of the points tracked so far (retry_min_flow)
+PASS_LOCAL = 3  # the median displacement of each point's nearest tracked neighbours
+
+#: A local-flow guess shorter than this (level-0 pixels) is not tried: the zero-motion pass
+#: already started within its convergence basin.
+_LOCAL_MIN_FLOW = 1.0
+#: Nor one within this distance (level-0 pixels, squared) of where the point's earlier
+#: forward attempt ended: a retry from there converges to the same place.
+_LOCAL_SAME_END_SQ = 2.0**2
+#: A local-flow retry tracks from the guess on the creation level c and this many levels above
+#: it only (the guess is within a few pixels; coarser levels cost as much as fine ones and are
+#: the ones that do not fit the points that need the retry). The reference also rejects a
+#: track that fails on level c + 1.
+_LOCAL_LEVELS_ABOVE = 1
 
 _NO_GUESS = np.zeros((0, 2))
 _ORDER_UNGUIDED = np.array([PASS_ZERO, PASS_MEDIAN], dtype=np.int64)
 _ORDER_GUIDED = np.array([PASS_GUESS, PASS_ZERO, PASS_MEDIAN], dtype=np.int64)
+
+
+def pass_order(guided: bool, local_rounds: int = 0) -> np.ndarray:
+    """The passes of :func:`track_points`: [guess,] zero, median, then ``local_rounds``
+    local-flow passes."""
+    base = _ORDER_GUIDED if guided else _ORDER_UNGUIDED
+    return np.concatenate([base, np.full(max(0, local_rounds), PASS_LOCAL, dtype=np.int64)])
 
 
 def track_points(
@@ -138,7 +162,8 @@ def track_points(
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
     st_b, data_b, valid_b, jac_b, aux_b,
     pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
-    guess=None, order=None, min_zncc_guess=0.9,
+    guess=None, order=None, min_zncc_guess=0.9, local_neighbours=8,
+    fb_var=None, fb_max_sq=np.inf,
 ):
     """Track all points of image A into image B with a forward-backward check.
 
@@ -160,9 +185,26 @@ def track_points(
             at least this (<= -1 disables). The guided backward pass starts near ``p``, so
             it cannot expose a false match that a wrong prediction led the forward pass to.
         order: (M,) int64 sequence of passes (:data:`PASS_ZERO`, :data:`PASS_GUESS`,
-            :data:`PASS_MEDIAN`); each pass retries the points still not tracked. Default:
-            guess, zero, median with a guess; zero, median (the reference plus the retry)
-            without.
+            :data:`PASS_MEDIAN`, :data:`PASS_LOCAL`); each pass retries the points still not
+            tracked. Default: guess, zero, median with a guess; zero, median (the reference
+            plus the retry) without (see :func:`pass_order`).
+        fb_var: optional (L,) per level ``c``: ``kappa**2 * (sigma_A**2 + sigma_B**2)``,
+            the squared noise-scaled limit factor (``sigma`` the noise of level ``c`` of each
+            image, intensity units); 0 or None: the fixed limit. Where positive, a point
+            created on level ``c`` is kept when its squared forward-backward distance is
+            below ``clip(fb_var[c] * lambda_max(C) / mean**2, fb_threshold_sq, fb_max_sq)``,
+            with ``C`` the translation block of ``(J^T J)^-1`` and ``mean`` the mean of its
+            template in image A on level ``c``: ``kappa`` standard deviations of the
+            forward-backward distance the image noise alone would cause (the forward and
+            backward estimates taken as independent).
+        local_neighbours: the local-flow pass (:data:`PASS_LOCAL`) starts each point that
+            is not tracked yet from the median displacement (per axis) of the
+            ``local_neighbours`` nearest points (level-0 distance) tracked by the earlier
+            passes, forward from ``p + g`` and back from ``p' - g`` like the guided pass and
+            under the same patch-correlation test (``min_zncc_guess``), on the creation level
+            and the one above only. Needs at least 3 tracked points; guesses shorter than
+            1 px, or within 2 px of where the point's earlier forward attempt ended, are
+            skipped.
     Returns:
         (new_points (N, 2), theta (N,), status (N,) bool): status is True when the point was
         tracked A -> B and back B -> A to within ``fb_threshold_sq`` (squared distance in
@@ -178,12 +220,17 @@ def track_points(
             raise ValueError(f"guess must have shape ({points.shape[0]}, 2), got {guess.shape}")
     if order is None:
         order = _ORDER_UNGUIDED if guess.shape[0] == 0 else _ORDER_GUIDED
+    n_levels = offs_a.shape[0]
+    fb_var = np.zeros(n_levels) if fb_var is None else np.ascontiguousarray(fb_var, dtype=np.float64)
+    if fb_var.shape != (n_levels,):
+        raise ValueError(f"fb_var must have shape ({n_levels},), got {fb_var.shape}")
     return _track_points(
         buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
         points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
         st_b, data_b, valid_b, jac_b, aux_b,
         pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
-        guess, np.asarray(order, dtype=np.int64), min_zncc_guess,
+        guess, np.asarray(order, dtype=np.int64), min_zncc_guess, int(local_neighbours),
+        fb_var, float(fb_max_sq),
     )[:3]
 
 
@@ -193,6 +240,7 @@ def _track_points(
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
     st_b, data_b, valid_b, jac_b, aux_b,
     pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
+    local_neighbours, fb_var, fb_max_sq,
 ):
     """Kernel of :func:`track_points` (``guess`` (N, 2) or (0, 2) for none). Also returns
     the ZNCC of each point's last guided forward match (-2: none)."""
@@ -209,16 +257,20 @@ def _track_points(
     data_s = np.empty((n_levels, p), dtype=np.float32)
     valid_s = np.empty((n_levels, p), dtype=np.bool_)
     jac_s = np.empty((n_levels, p, 3), dtype=np.float32)
-    aux_s = np.empty((n_levels, 4, 3), dtype=np.float32)
+    aux_s = np.empty((n_levels, 5, 3), dtype=np.float32)
     radius = 0.0
     for i in range(p):
         radius = max(radius, math.sqrt(pattern[i, 0] ** 2 + pattern[i, 1] ** 2))
     radius += 1e-6
+    local = np.full((n, 2), np.nan)
     for mode in order:
         flow_x = 0.0
         flow_y = 0.0
         if mode == PASS_GUESS and not has_guess:
             continue
+        if mode == PASS_LOCAL:
+            if not _local_guesses(points, out, status, local_neighbours, local):
+                continue
         if mode == PASS_MEDIAN:
             # Median displacement of the earlier passes as the guess for the failed points.
             n_ok = 0
@@ -241,29 +293,35 @@ def _track_points(
         for k in range(n):
             if status[k]:
                 continue
-            if mode == PASS_GUESS:
-                flow_x = guess[k, 0]
-                flow_y = guess[k, 1]
+            per_point = mode == PASS_GUESS or mode == PASS_LOCAL
+            if per_point:
+                if mode == PASS_GUESS:
+                    flow_x = guess[k, 0]
+                    flow_y = guess[k, 1]
+                else:
+                    flow_x = local[k, 0]
+                    flow_y = local[k, 1]
                 if not (math.isfinite(flow_x) and math.isfinite(flow_y)):
                     continue
             x0 = points[k, 0]
             y0 = points[k, 1]
             lvl = levels[k]
             row = rows_a[k]
+            top = lvl + _LOCAL_LEVELS_ABOVE if mode == PASS_LOCAL else -1
             if row >= 0:
                 ok, x1, y1, t1 = track_point(
                     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
                     x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, margin, iterations,
-                    st_a[row], data_a[row], valid_a[row], jac_a[row], aux_a[row],
+                    st_a[row], data_a[row], valid_a[row], jac_a[row], aux_a[row], top,
                 )
             else:
                 st_s[:] = -1
                 ok, x1, y1, t1 = track_point(
                     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
                     x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, margin, iterations,
-                    st_s, data_s, valid_s, jac_s, aux_s,
+                    st_s, data_s, valid_s, jac_s, aux_s, top,
                 )
-            if ok and mode == PASS_GUESS and min_zncc_guess > -1.0:
+            if ok and per_point and min_zncc_guess > -1.0:
                 # The backward pass below starts near the start point, so a false match
                 # found from a wrong prediction can pass the forward-backward check; require
                 # the patch to look like its template.
@@ -291,11 +349,72 @@ def _track_points(
             ok, xb, yb, _ = track_point(
                 buf_b, offs_b, ws_b, hs_b, buf_a, offs_a, ws_a, hs_a,
                 x1, y1, x1 - flow_x, y1 - flow_y, lvl, pattern, radius, margin, iterations,
-                st_b[k], data_b[k], valid_b[k], jac_b[k], aux_b[k],
+                st_b[k], data_b[k], valid_b[k], jac_b[k], aux_b[k], top,
             )
             if not ok:
                 continue
             scale = float(1 << lvl)
             dist_sq = ((xb - x0) ** 2 + (yb - y0) ** 2) / (scale * scale)
-            status[k] = dist_sq < fb_threshold_sq
+            limit_sq = fb_threshold_sq
+            if fb_var[lvl] > 0.0:
+                a = aux_a[row, lvl] if row >= 0 else aux_s[lvl]
+                mean = float(a[4, 0])
+                limit_sq = min(max(fb_var[lvl] * translation_lambda_max(a) / (mean * mean), fb_threshold_sq), fb_max_sq)
+            status[k] = dist_sq < limit_sq
     return out, theta, status, score
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def _local_guesses(points, out, status, k_nearest, guess) -> bool:
+    """Fill ``guess`` (N, 2) for the points not tracked (``status`` False) with the per-axis
+    median displacement ``out - points`` of their ``k_nearest`` nearest tracked points (ties
+    in distance: lower index first). NaN: a tracked point, a guess shorter than
+    :data:`_LOCAL_MIN_FLOW`, or one ending within ``sqrt(_LOCAL_SAME_END_SQ)`` of the point's
+    own ``out``. Returns False when there is nothing to try (fewer than 3 tracked points, or
+    none untracked)."""
+    n = points.shape[0]
+    tracked = np.flatnonzero(status)
+    m = tracked.shape[0]
+    guess[:, :] = np.nan
+    if m < 3 or m == n or k_nearest < 1:
+        return False
+    k_use = min(k_nearest, m)
+    best_d = np.empty(k_use)
+    best_i = np.empty(k_use, dtype=np.int64)
+    dx = np.empty(k_use)
+    dy = np.empty(k_use)
+    for k in range(n):
+        if status[k]:
+            continue
+        count = 0
+        for j in range(m):
+            t = tracked[j]
+            d = (points[t, 0] - points[k, 0]) ** 2 + (points[t, 1] - points[k, 1]) ** 2
+            if count < k_use:
+                pos = count
+                count += 1
+            elif d < best_d[k_use - 1]:
+                pos = k_use - 1
+            else:
+                continue
+            # insertion into the sorted list of the nearest so far (ties: lower index first)
+            while pos > 0 and best_d[pos - 1] > d:
+                best_d[pos] = best_d[pos - 1]
+                best_i[pos] = best_i[pos - 1]
+                pos -= 1
+            best_d[pos] = d
+            best_i[pos] = t
+        for j in range(k_use):
+            t = best_i[j]
+            dx[j] = out[t, 0] - points[t, 0]
+            dy[j] = out[t, 1] - points[t, 1]
+        gx = np.median(dx)
+        gy = np.median(dy)
+        # where an earlier pass ended (its forward result) near the guessed position, a retry
+        # from there would converge to the same place
+        ex = points[k, 0] + gx - out[k, 0]
+        ey = points[k, 1] + gy - out[k, 1]
+        if gx * gx + gy * gy >= _LOCAL_MIN_FLOW * _LOCAL_MIN_FLOW and ex * ex + ey * ey >= _LOCAL_SAME_END_SQ:
+            guess[k, 0] = gx
+            guess[k, 1] = gy
+    return True
