@@ -39,7 +39,7 @@ class OpticalFlowConfig:
         margin: a pattern sample (and a patch centre) is inside the image only if at least
             this far from the border (level pixels).
         presmooth_sigma: not in the reference (0 = off, the reference). Gaussian blur of the
-            input image (sigma in level-0 pixels) before the pyramid. The default 0.7 makes
+            input image (sigma in level-0 pixels) before the pyramid. The default 0.5 makes
             level-0 tracks on noisy and real images survive the forward-backward check far
             more often, at equal or better accuracy (``docs/optical_flow.md``).
         retry_min_flow: not in the reference (set 0 to disable). When the median
@@ -86,7 +86,7 @@ class OpticalFlowConfig:
     fast_min_threshold: int = spec_field(5, 1, 255, doc="at most fast_threshold")
     border: int = spec_field(19, 3, 100000, doc="FAST needs a 3 px ring")
     margin: float = spec_field(2.0, 2.0, 1e4, doc="gradients read two pixels around a sample")
-    presmooth_sigma: float = spec_field(0.7, 0.0, 5.0, origin="ours", reference=0.0,
+    presmooth_sigma: float = spec_field(0.5, 0.0, 5.0, origin="ours", reference=0.0,
                                         doc="0 disables (the reference)")
     retry_min_flow: float = spec_field(2.0, 0.0, 1e4, origin="ours", reference=0.0,
                                        doc="0 disables")
