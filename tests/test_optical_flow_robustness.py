@@ -76,8 +76,8 @@ def run_sequence(root: Path, config: OpticalFlowConfig, noisy: bool = False):
 
 #: Level-0 survival bound. `aggressive` (7 m/s at 3-8 m, banked turns) loses about one track
 #: in ten per frame out of the image alone (its "in view" share), so it gets a bound relative
-#: to that share instead: 0.12 below it (measured with the default 0.5 px pre-smoothing: 0.85
-#: clean and 0.79 with the added noise, in view 0.91; the frontend before issue 12: 0.65-0.76).
+#: to that share instead: 0.13 below it (measured with the default 0.5 px pre-smoothing: 0.79
+#: with the added noise, in view 0.91; the frontend before issue 12: 0.65-0.76).
 SURVIVAL = 0.95
 AGGRESSIVE_MARGIN = 0.13
 #: Ground-truth flow error bounds (issue 12): median and share beyond 2 px. On `aggressive`
