@@ -76,6 +76,24 @@ class EstimatorConfig:
             false = the fixed initial scale and a new sub-map.
         scene_distance_min_points: the scene distance a re-initialisation keeps is updated
             from frames that see at least this many finite landmarks.
+        init_max_candidates: not in the reference (0: its search, keyframes oldest first, the
+            first that initialises wins): the map initialisation evaluates this many keyframes,
+            those whose shared tracks show the most rotation-compensated parallax, and keeps
+            the accepted hypothesis with the most inliers.
+        init_candidate_min_parallax: candidates whose rotation-compensated track parallax
+            (75th percentile) is below this fraction of ``[initialization] min_parallax_deg``
+            are not tried (0: all are tried).
+        init_keep_reference: not in the reference: while no map exists, the keyframe with the
+            most rotation-compensated parallax to the newest frame is never marginalised.
+        keyframe_on_invalid_entropy: a missing or non-finite (singular) negative entropy forces
+            a keyframe, as in the reference (false: it never triggers one).
+        refind_enabled: not in the reference: a mapped frame observing fewer than
+            ``refind_below_finite`` finite landmarks re-finds the window's others from their
+            predicted positions, tracking their host keyframe's patch
+            (:mod:`granite.estimator.recovery`).
+        refind_fb_threshold_sq: forward-backward limit of a re-found point (squared pixels of
+            its creation level).
+        refind_min_zncc: minimum ZNCC of a re-found patch with its host patch.
         motion_guided_tracking: not in the reference: the frontend first tracks each point
             from where the constant-velocity pose predicts it (landmarks with d > 0 by their
             depth, the others by the infinite homography), then as the reference does.
@@ -96,6 +114,14 @@ class EstimatorConfig:
     motion_guided_tracking: bool = spec_field(True, origin="ours", reference=False)
     reinit_keeps_scale: bool = spec_field(True, origin="ours", reference=False)
     scene_distance_min_points: int = spec_field(20, 1, 100000, origin="ours")
+    init_max_candidates: int = spec_field(3, 0, 1000, origin="ours", reference=0)
+    init_candidate_min_parallax: float = spec_field(0.0, 0.0, 10.0, origin="ours")
+    init_keep_reference: bool = spec_field(True, origin="ours", reference=False)
+    keyframe_on_invalid_entropy: bool = spec_field(True)
+    refind_enabled: bool = spec_field(True, origin="ours", reference=False)
+    refind_below_finite: int = spec_field(30, 0, 100000, origin="ours")
+    refind_fb_threshold_sq: float = spec_field(0.3, 0.0, 1e4, lo_open=True, origin="ours")
+    refind_min_zncc: float = spec_field(0.8, -1.0, 1.0, origin="ours")
 
     def __post_init__(self) -> None:
         validate_section(self, "estimator")
@@ -154,6 +180,7 @@ SECTION_LIMITS: dict[str, dict[str, dict[str, Any]]] = {
         "seed": limits(0, 2**31 - 1, origin="ours"),
         "refine_reach": limits(0.0, 1.0, origin="ours"),
         "refine_max_evaluations": limits(1, 1000000, origin="ours"),
+        "parallax_distance": limits(choices=("mean", "median"), origin="ours"),
     },
 }
 
