@@ -180,7 +180,7 @@ SECTION_LIMITS: dict[str, dict[str, dict[str, Any]]] = {
         "seed": limits(0, 2**31 - 1, origin="ours"),
         "refine_reach": limits(0.0, 1.0, origin="ours"),
         "refine_max_evaluations": limits(1, 1000000, origin="ours"),
-        "parallax_distance": limits(choices=("mean", "median"), origin="ours"),
+        "parallax_distance": limits(choices=("mean", "median"), origin="ours", reference="mean"),
     },
 }
 

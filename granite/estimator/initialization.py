@@ -43,7 +43,7 @@ class InitializationConfig:
     #: the scene distance of Eq. 8: "mean" (the paper, the reference) or "median" of the
     #: triangulated inliers' distances (ours: robust to the nearly parallax-free far points
     #: whose triangulated distance is arbitrary and dominates the mean outdoors)
-    parallax_distance: str = "mean"
+    parallax_distance: str = "median"
 
 
 @dataclass
