@@ -12,7 +12,11 @@ infinity -> failure check (restart, new sub-map) -> outlier removal and marginal
 Before a map exists every landmark is at infinity (d = 0), so the VO tracks rotation only; the
 translation of keyframes linked only by such points is tied by the backend's small prior
 (Sec. IV-B). Every output pose ``T_w_c`` carries its sub-map index. A tracking failure starts a
-new sub-map at the identity. A re-initialisation (the map lost, every point at infinity) keeps
+new sub-map at the identity with the lost frame. A mapped frame that observes few finite
+landmarks first re-finds the window's others from their predicted positions
+(:mod:`granite.estimator.recovery`). Map initialisation ranks the keyframes by the
+rotation-compensated parallax of their shared tracks and, while no map exists, keeps the best
+of them in the window (docs/estimator.md). A re-initialisation (the map lost, every point at infinity) keeps
 the sub-map when ``reinit_keeps_scale`` is set (the default) and a scene distance is known: the
 new map is scaled to it; otherwise it starts a new sub-map (the fixed initial scale, unrelated
 to the old one) that continues from the current pose.
