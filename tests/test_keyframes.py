@@ -27,4 +27,9 @@ def test_selector_waits_for_history_and_resets():
     assert sel.running_average is None
     assert not sel.update(1.0, 100)  # no history yet: no decision
     assert sel.update(50.0, 5)  # too few connected points forces a keyframe
-    assert not sel.update(math.nan, 100)
+    assert sel.update(math.nan, 100)  # a singular or missing entropy forces one (reference)
+    assert sel.update(-math.inf, 100)
+    assert sel.running_average == 1.0  # and does not enter the average
+    quiet = EntropyKeyframeSelector(fraction=0.9, invalid_forces_keyframe=False)
+    assert not quiet.update(math.nan, 100)
+    assert not quiet.update(-math.inf, 100)

@@ -43,12 +43,16 @@ def test_reference_file_is_the_defaults_with_our_additions_off():
     assert changed == {("optical_flow", "retry_min_flow"), ("optical_flow", "guess_min_zncc"),
                        ("optical_flow", "presmooth_sigma"), ("optical_flow", "local_retry_rounds"),
                        ("estimator", "constant_velocity"), ("estimator", "motion_guided_tracking"),
-                       ("estimator", "reinit_keeps_scale")}
+                       ("estimator", "reinit_keeps_scale"), ("estimator", "init_max_candidates"),
+                       ("estimator", "init_keep_reference"), ("estimator", "entropy_iteration"),
+                       ("initialization", "parallax_distance")}
     # The features are really off: no median-flow retry, no guided pass, no constant velocity.
     assert ref.optical_flow.retry_min_flow == 0.0 and ref.optical_flow.guess_min_zncc == -1.0
     assert ref.optical_flow.presmooth_sigma == 0.0 and ref.optical_flow.local_retry_rounds == 0
     assert not (ref.estimator.constant_velocity or ref.estimator.motion_guided_tracking
-                or ref.estimator.reinit_keeps_scale)
+                or ref.estimator.reinit_keeps_scale or ref.estimator.init_keep_reference
+                or ref.estimator.refind_enabled)
+    assert ref.estimator.init_max_candidates == 0 and ref.estimator.entropy_iteration == 4
 
 
 def test_default_file_marks_exactly_our_keys():

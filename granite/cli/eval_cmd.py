@@ -110,6 +110,9 @@ def format_table(result: dict[str, Any], est: Path, gt: Path) -> str:
                       f"{r['rpe_skipped_no_gt']} outside ground truth)"),
         ("tracking percentage", f"{r['tracking_percentage']:.1f} %"),
         ("restarts", str(r["restarts"])),
+        ("initialisation delay", "n/a (no diagnostics.csv)" if "init_delay_frames" not in r else
+         f"{r['init_delay_frames']} frames / {_fmt(r['init_delay_s'], ' s', 3)} after "
+         f"{r['init_min_baseline']:g} m of ground-truth baseline"),
         ("path length (ground truth)", _fmt(r["path_length"], " m", 3)),
         ("ATE / path length", "n/a" if ratio is None else f"{100 * ratio:.3f} %"),
         ("sub-map scales", scales or "-"),
@@ -133,6 +136,14 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(error.message, args.est) from None
         raise
     result["submaps_source"] = source
+    diagnostics = (args.est if args.est.is_dir() else args.est.parent) / "diagnostics.csv"
+    if diagnostics.is_file():  # a run folder: the initialisation delay from its states
+        from granite.estimator.diagnostics import read_diagnostics
+        from granite.evaluation.initialization import initialization_delay
+
+        rows = read_diagnostics(diagnostics)
+        result.update(initialization_delay([d.timestamp for d in rows], [d.state for d in rows],
+                                           gt).to_dict())
     if args.json:
         result = {"estimate": str(args.est), "ground_truth": str(args.gt), **result}
         print(json.dumps(result, allow_nan=False))

@@ -14,6 +14,7 @@ from granite.estimator.config import VoConfig
 from granite.estimator.records import FrameRecord, write_records
 from granite.estimator.runner import TRAJECTORY_FORMATS, RunResult, run_vo, summary_dict, write_run
 from granite.evaluation import DEFAULT_RPE_DELTA, evaluate
+from granite.evaluation.initialization import initialization_delay
 from granite.io import atomic_write_text, check_writable, open_dataset
 
 DESCRIPTION = f"""\
@@ -129,6 +130,9 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
     if dataset.ground_truth is not None:
         try:
             evaluation = evaluate(result.trajectory, dataset.ground_truth, delta=delta).to_dict()
+            evaluation.update(initialization_delay([d.timestamp for d in result.diagnostics],
+                                                   [d.state for d in result.diagnostics],
+                                                   dataset.ground_truth).to_dict())
         except (GraniteError, ValueError) as error:  # the run itself succeeded: keep its outputs
             result.evaluation_error = str(error)
             print(f"granite: warning: evaluation failed, no evaluation.json written: {error}", file=sys.stderr)
@@ -182,6 +186,11 @@ def summary_lines(result, evaluation: dict | None, delta: float) -> list[str]:
             + (f" ({100 * frac:.2f} % of {e['path_length']:.1f} m)" if frac is not None else "")
             + f", RPE({delta:g} s) {rpe}, tracking {e['tracking_percentage']:.1f} %"
         )
+        if "init_delay_frames" in e:
+            delay = e["init_delay_frames"]
+            lines.append("map never initialised" if delay is None else
+                         f"map initialised {delay} frames ({e['init_delay_s']:.2f} s) after "
+                         f"{e['init_min_baseline']:g} m of ground-truth baseline")
     elif result.evaluation_error is not None:
         lines.append(f"evaluation failed: {result.evaluation_error}")
     return lines

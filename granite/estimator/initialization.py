@@ -40,6 +40,10 @@ class InitializationConfig:
     #: the camera turns in place: initialisation is attempted every frame)
     refine_reach: float = 0.5
     refine_max_evaluations: int = 50  # residual evaluations of the Sampson-error refinement
+    #: the scene distance of Eq. 8: "mean" (the paper, the reference) or "median" of the
+    #: triangulated inliers' distances (ours: robust to the nearly parallax-free far points
+    #: whose triangulated distance is arbitrary and dominates the mean outdoors)
+    parallax_distance: str = "median"
 
 
 @dataclass
@@ -138,14 +142,15 @@ def _rotation_only(bk: np.ndarray, bc: np.ndarray, thr_sq: float, xc: np.ndarray
     return err
 
 
-def _parallax_deg(h: _Hypothesis, inliers: np.ndarray, mean_distance: float) -> float:
-    """Parallax angle alpha = 2 atan(|t| / (2 rho)) of a hypothesis scaled so that its inlier
-    points have mean distance ``mean_distance`` (= rho); 0 without inliers."""
+def _parallax_deg(h: _Hypothesis, inliers: np.ndarray, statistic: str = "mean") -> float:
+    """Parallax angle alpha = 2 atan(|t| / (2 rho)) of a hypothesis, rho the mean (or median)
+    distance of its inlier points (Eq. 8, independent of the scale); 0 without inliers."""
     valid = inliers & h.valid
     if not valid.any():
         return 0.0
-    scale = mean_distance / float(np.mean(np.linalg.norm(h.points[valid], axis=1)))
-    return float(np.degrees(2.0 * np.arctan(np.linalg.norm(h.t) * scale / (2.0 * mean_distance))))
+    d = np.linalg.norm(h.points[valid], axis=1)
+    rho = float(np.median(d) if statistic == "median" else np.mean(d))
+    return float(np.degrees(2.0 * np.arctan(np.linalg.norm(h.t) / (2.0 * rho))))
 
 
 def initialize_two_view(
@@ -200,7 +205,7 @@ def initialize_two_view(
     # rescue a hypothesis: refine only one that is within reach of the acceptance tests.
     reach = config.refine_reach
     if best_inliers.sum() >= max(_MIN_CORRESPONDENCES, int(reach * config.min_inliers)) and \
-            _parallax_deg(best, best_inliers, config.mean_distance) >= reach * config.min_parallax_deg:
+            _parallax_deg(best, best_inliers, config.parallax_distance) >= reach * config.min_parallax_deg:
         R, t = _refine(best.R, best.t, xk[best_inliers], xc[best_inliers], thr,
                        config.refine_max_evaluations)
         refined = _evaluate(best.model, R, t, bk, bc, xk, xc)
@@ -223,7 +228,7 @@ def initialize_two_view(
     distances = np.linalg.norm(best.points[best_inliers], axis=1)
     scale = config.mean_distance / float(np.mean(distances))
     t_scaled = best.t * scale
-    parallax = _parallax_deg(best, best_inliers, config.mean_distance)
+    parallax = _parallax_deg(best, best_inliers, config.parallax_distance)
 
     inliers_all = np.zeros(n_all, dtype=bool)
     inliers_all[idx[best_inliers]] = True

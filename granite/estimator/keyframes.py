@@ -23,13 +23,17 @@ class EntropyKeyframeSelector:
     """Stateful keyframe criterion: feed one value per tracked frame, reset at each keyframe.
 
     ``update`` returns True when a keyframe should be taken: the negative entropy dropped (see
-    :func:`entropy_dropped`), or fewer than ``min_connected_points`` points are connected.
+    :func:`entropy_dropped`), fewer than ``min_connected_points`` points are connected, or
+    (``invalid_forces_keyframe``) the negative entropy is missing or not finite.
     Entropy drops are only acted on ``min_frames_after_keyframe`` frames after a keyframe.
     """
 
     fraction: float = 0.995
     min_connected_points: int = 20
     min_frames_after_keyframe: int = 3
+    #: a missing or non-finite negative entropy (singular information) forces a keyframe, as
+    #: in the reference (False: it is ignored)
+    invalid_forces_keyframe: bool = True
     _sum: float = 0.0
     _count: int = 0
 
@@ -45,7 +49,7 @@ class EntropyKeyframeSelector:
         if connected_points < self.min_connected_points:
             return True
         if not math.isfinite(negative_entropy):
-            return False
+            return self.invalid_forces_keyframe
         average = self.running_average
         drop = (
             average is not None

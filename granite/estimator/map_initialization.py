@@ -1,8 +1,9 @@
 """Map initialisation from two views (paper Sec. IV-C), at the level of the window.
 
 :func:`find_map_initialization` tries the relative-pose initialisation
-(:func:`granite.estimator.initialization.initialize_two_view`) of the current frame against every
-keyframe of the window; :func:`build_initial_map` restarts the window from the two views: both
+(:func:`granite.estimator.initialization.initialize_two_view`) of the current frame against the
+keyframes of the window (the reference's order, or the candidates with the most
+rotation-compensated parallax first, :func:`init_candidates`, keeping the best accepted one); :func:`build_initial_map` restarts the window from the two views: both
 become keyframes, the inlier tracks become finite landmarks hosted by the keyframe, the prior is
 reset to the keyframe's gauge and the scale fix of Eq. 9 fixes the distance of the two views.
 """
@@ -41,26 +42,110 @@ class MapInitialization:
         return self.result.points_k[:n][self.result.inliers[:n]]
 
 
-def find_map_initialization(window: SlidingWindow, triangulator: LandmarkTriangulator,
-                            tracks: dict[int, FrameTracks], frame_id: int,
-                            config: InitializationConfig) -> MapInitialization | None:
-    """The first keyframe of the window (ascending id) that initialises with ``frame_id``."""
+def rotation_compensated_parallax(bearings_k: np.ndarray, bearings_c: np.ndarray) -> np.ndarray:
+    """Angle (deg) of each correspondence between keyframe bearings ``bearings_k`` and frame
+    bearings ``bearings_c`` (unit, (n, 3)) after the best common rotation ``R`` (``b_c ~ R b_k``,
+    least squares on the unit vectors, refitted once without the 25 % worst) is removed: the
+    part of the apparent motion that only translation can cause. Empty for fewer than 3."""
+    bk = np.asarray(bearings_k, dtype=np.float64)
+    bc = np.asarray(bearings_c, dtype=np.float64)
+    if len(bk) < 3:
+        return np.zeros(0)
+    use = np.ones(len(bk), dtype=bool)
+    angles = np.zeros(len(bk))
+    for _ in range(2):
+        u, _, vt = np.linalg.svd(bc[use].T @ bk[use])
+        R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        cos = np.clip(np.sum((bk @ R.T) * bc, axis=1), -1.0, 1.0)
+        angles = np.degrees(np.arccos(cos))
+        use = angles <= np.quantile(angles, 0.75)
+        if use.sum() < 3:
+            break
+    return angles
+
+
+@dataclass(frozen=True)
+class InitCandidate:
+    """A keyframe sharing tracks with the current frame, and the ``parallax_quantile`` of the
+    rotation-compensated parallax (deg) of those tracks."""
+
+    keyframe: int
+    parallax_deg: float
+    track_ids: np.ndarray
+    bearings_k: np.ndarray
+    bearings_c: np.ndarray
+
+
+def init_candidates(window: SlidingWindow, triangulator: LandmarkTriangulator,
+                    tracks: dict[int, FrameTracks], frame_id: int, min_shared: int,
+                    parallax_quantile: float = 0.75) -> list[InitCandidate]:
+    """The keyframes of ``window`` sharing at least ``min_shared`` tracks with ``frame_id``,
+    most rotation-compensated parallax first (ties: the older keyframe)."""
     cur = tracks[frame_id]
-    focal = float(np.mean(triangulator.camera.params[:2]))
+    out = []
     for kf in window.keyframe_ids:
-        if kf == frame_id:
+        if kf == frame_id or kf not in tracks:
             continue
         ref = tracks[kf]
         common = [t for t in cur.positions if t in ref.positions]
-        if len(common) < config.min_inliers:
+        if len(common) < min_shared:
             continue
         b_k, ok_k = triangulator.bearings(np.array([ref.positions[t] for t in common]))
         b_c, ok_c = triangulator.bearings(np.array([cur.positions[t] for t in common]))
         ok = ok_k & ok_c
-        result = initialize_two_view(b_k[ok], b_c[ok], focal, config)
-        if result.success:
-            return MapInitialization(kf, frame_id, result, np.array(common)[ok])
-    return None
+        if ok.sum() < min_shared:
+            continue
+        angles = rotation_compensated_parallax(b_k[ok], b_c[ok])
+        par = float(np.quantile(angles, parallax_quantile)) if len(angles) else 0.0
+        out.append(InitCandidate(kf, par, np.array(common)[ok], b_k[ok], b_c[ok]))
+    out.sort(key=lambda c: (-c.parallax_deg, c.keyframe))
+    return out
+
+
+def find_map_initialization(window: SlidingWindow, triangulator: LandmarkTriangulator,
+                            tracks: dict[int, FrameTracks], frame_id: int,
+                            config: InitializationConfig, max_candidates: int = 0,
+                            candidate_min_parallax: float = 0.0,
+                            candidates: list[InitCandidate] | None = None,
+                            ) -> MapInitialization | None:
+    """Two-view initialisation of ``frame_id`` against the window's keyframes.
+
+    ``max_candidates`` = 0 is the reference's search: the keyframes in ascending id, the first
+    that initialises wins. Otherwise the ``max_candidates`` keyframes with the most
+    rotation-compensated parallax (:func:`init_candidates`; those below
+    ``candidate_min_parallax`` times ``config.min_parallax_deg`` are not tried) are all
+    evaluated and the accepted hypothesis with the most inliers (ties: more parallax) wins.
+    """
+    focal = float(np.mean(triangulator.camera.params[:2]))
+    if max_candidates <= 0:
+        cur = tracks[frame_id]
+        for kf in window.keyframe_ids:
+            if kf == frame_id:
+                continue
+            ref = tracks[kf]
+            common = [t for t in cur.positions if t in ref.positions]
+            if len(common) < config.min_inliers:
+                continue
+            b_k, ok_k = triangulator.bearings(np.array([ref.positions[t] for t in common]))
+            b_c, ok_c = triangulator.bearings(np.array([cur.positions[t] for t in common]))
+            ok = ok_k & ok_c
+            result = initialize_two_view(b_k[ok], b_c[ok], focal, config)
+            if result.success:
+                return MapInitialization(kf, frame_id, result, np.array(common)[ok])
+        return None
+    if candidates is None:
+        candidates = init_candidates(window, triangulator, tracks, frame_id, config.min_inliers)
+    best = None
+    for cand in candidates[:max_candidates]:
+        if cand.parallax_deg < candidate_min_parallax * config.min_parallax_deg:
+            break  # sorted: the others have even less parallax
+        result = initialize_two_view(cand.bearings_k, cand.bearings_c, focal, config)
+        if not result.success:
+            continue
+        key = (result.num_inliers, result.parallax_deg)
+        if best is None or key > best[0]:
+            best = (key, MapInitialization(cand.keyframe, frame_id, result, cand.track_ids))
+    return None if best is None else best[1]
 
 
 def build_initial_map(window: SlidingWindow, triangulator: LandmarkTriangulator,

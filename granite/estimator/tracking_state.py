@@ -3,8 +3,8 @@
 A sub-map is :class:`MapState` ``EMPTY`` until its first frame, ``ROTATION_ONLY`` while every
 landmark is at infinity (the VO tracks rotation only and attempts a two-view map initialisation
 every frame), and ``MAPPED`` once an initialisation has given finite landmarks and the scale
-fix. A tracking failure empties it (restart: the next frame starts a new sub-map at the
-identity). Every processed frame gets a :class:`FrameStatus`, the ``state`` column of
+fix. A tracking failure empties it (restart); the lost frame itself then starts the new
+sub-map at the identity (``MonocularVO`` moves it to ``ROTATION_ONLY``), as the reference does. Every processed frame gets a :class:`FrameStatus`, the ``state`` column of
 ``diagnostics.csv``. All transitions are in :func:`next_state`.
 """
 

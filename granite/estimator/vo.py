@@ -12,7 +12,11 @@ infinity -> failure check (restart, new sub-map) -> outlier removal and marginal
 Before a map exists every landmark is at infinity (d = 0), so the VO tracks rotation only; the
 translation of keyframes linked only by such points is tied by the backend's small prior
 (Sec. IV-B). Every output pose ``T_w_c`` carries its sub-map index. A tracking failure starts a
-new sub-map at the identity. A re-initialisation (the map lost, every point at infinity) keeps
+new sub-map at the identity with the lost frame. A mapped frame that observes few finite
+landmarks first re-finds the window's others from their predicted positions
+(:mod:`granite.estimator.recovery`). Map initialisation ranks the keyframes by the
+rotation-compensated parallax of their shared tracks and, while no map exists, keeps the best
+of them in the window (docs/estimator.md). A re-initialisation (the map lost, every point at infinity) keeps
 the sub-map when ``reinit_keeps_scale`` is set (the default) and a scene distance is known: the
 new map is scaled to it; otherwise it starts a new sub-map (the fixed initial scale, unrelated
 to the old one) that continues from the current pose.
@@ -30,8 +34,9 @@ from granite.estimator.config import VoConfig
 from granite.estimator.diagnostics import FrameDiagnostics
 from granite.estimator.keyframes import EntropyKeyframeSelector
 from granite.estimator.landmark_creation import LandmarkTriangulator
-from granite.estimator.map_initialization import build_initial_map, find_map_initialization
+from granite.estimator.map_initialization import build_initial_map, find_map_initialization, init_candidates
 from granite.estimator.motion_model import ConstantVelocityModel, predicted_track_positions
+from granite.estimator.recovery import LandmarkRefinder
 from granite.estimator.tracking_state import FrameStatus, MapState, next_state
 from granite.estimator.tracks import FrameTracks
 from granite.estimator.window_policy import frames_to_marginalize
@@ -69,8 +74,14 @@ class MonocularVO:
         self.window = SlidingWindow(camera, self.config.backend)
         self.triangulator = LandmarkTriangulator(self.window, camera, est.min_triangulation_distance)
         self.selector = EntropyKeyframeSelector(
-            est.keyframe_entropy_fraction, est.keyframe_min_connected, est.min_frames_after_keyframe
+            est.keyframe_entropy_fraction, est.keyframe_min_connected, est.min_frames_after_keyframe,
+            est.keyframe_on_invalid_entropy,
         )
+        self.refinder = LandmarkRefinder(self.window, camera, self.config.optical_flow,
+                                         est.refind_fb_threshold_sq, est.refind_min_zncc)
+        #: while no map exists: the keyframe with the most rotation-compensated parallax to the
+        #: newest frame (kept in the window with ``init_keep_reference``)
+        self._init_reference: int | None = None
         self.motion = ConstantVelocityModel(est.constant_velocity, est.max_velocity_extrapolation)
         self.state = MapState.EMPTY
         self.submap = 0
@@ -104,21 +115,47 @@ class MonocularVO:
         """Forget the window and start an empty sub-map (the next frame starts it)."""
         self.window.reset()
         self._tracks.clear()
+        self.refinder.reset()
+        self._init_reference = None
         self.selector.reset()
         self._scene_distance = None
         self._previous_frame = None
         self.submap += 1
         self.motion.reset()
 
+    def _start_submap(self, frame_id: int, timestamp: float, tracks: OpticalFlowResult,
+                      image: np.ndarray) -> np.ndarray:
+        """After a restart the lost frame is the first frame of the new sub-map (the
+        reference's behaviour): a keyframe at the identity whose tracks are landmarks at
+        infinity. Returns its pose."""
+        self._tracks[frame_id] = FrameTracks.from_result(tracks)
+        self.window.add_frame(frame_id, np.eye(4), is_keyframe=True)
+        self.triangulator.add_hosted_by(self._tracks, frame_id)
+        self.keyframe_log.append((frame_id, self.submap))
+        if self.config.estimator.refind_enabled:
+            self.refinder.add_image(frame_id, image)
+        self.state = MapState.ROTATION_ONLY
+        self.motion.update(np.eye(4), timestamp, measure_motion=False)
+        self._previous_frame = frame_id
+        return np.eye(4)
+
     def _try_initialization(self, frame_id: int) -> bool:
         """Relative-pose map initialisation against the window's keyframes (IV-C). A
         re-initialisation (the map was lost, e.g. all points at infinity after a turn) keeps
         the scene distance and the sub-map with ``reinit_keeps_scale``, otherwise starts a new
         sub-map at the initialisation's fixed scale."""
-        init = find_map_initialization(self.window, self.triangulator, self._tracks, frame_id,
-                                       self.config.initialization)
+        est, cfg = self.config.estimator, self.config.initialization
+        candidates = None
+        if est.init_max_candidates > 0 or est.init_keep_reference:
+            candidates = init_candidates(self.window, self.triangulator, self._tracks, frame_id,
+                                         cfg.min_inliers)
+            self._init_reference = candidates[0].keyframe if candidates else None
+        init = find_map_initialization(self.window, self.triangulator, self._tracks, frame_id, cfg,
+                                       est.init_max_candidates, est.init_candidate_min_parallax,
+                                       candidates)
         if init is None:
             return False
+        self._init_reference = None
         scale = 1.0
         if self.state is MapState.MAPPED:
             if self.config.estimator.reinit_keeps_scale and self._scene_distance:
@@ -132,14 +169,20 @@ class MonocularVO:
         self.selector.reset()
         return True
 
-    def _insert_keyframe(self, frame_id: int) -> None:
+    def _insert_keyframe(self, frame_id: int, forced: bool) -> bool:
         """Make the previous frame (paper IV-D; the current one for ablation ‡ or when there is
-        none) a keyframe hosting new landmarks, then run the extra iterations."""
+        none) a keyframe hosting new landmarks, then run the extra iterations. When the previous
+        frame already is a keyframe, an entropy decision is dropped (its surviving tracks are
+        landmarks already) and only a keyframe ``forced`` by too few connected points makes the
+        current frame one. Returns whether a keyframe was inserted."""
         win, est = self.window, self.config.estimator
         kf = frame_id
         prev = self._previous_frame
-        if est.previous_frame_as_keyframe and prev is not None and prev in win and not win.is_keyframe(prev):
-            kf = prev
+        if est.previous_frame_as_keyframe and prev is not None and prev in win:
+            if not win.is_keyframe(prev):
+                kf = prev
+            elif not forced:
+                return False
         win.make_keyframe(kf)
         self.triangulator.add_hosted_by(self._tracks, kf)
         if kf != frame_id:  # the current frame observes the new landmarks too
@@ -148,13 +191,15 @@ class MonocularVO:
         self.selector.reset()
         if est.keyframe_extra_iterations:
             win.optimize(max_iterations=est.keyframe_extra_iterations)
+        return True
 
     def _optimize_and_select_keyframe(self, frame_id: int) -> tuple[float | None, bool]:
         """Gauss-Newton on the window, then the keyframe decision of Sec. IV-D (taken on the
         system linearised after ``entropy_iteration`` iterations), re-triangulation of points
         at infinity and outlier removal. Returns (negative entropy, keyframe inserted)."""
         win, est = self.window, self.config.estimator
-        report = win.optimize(snapshot_iteration=est.entropy_iteration - 1)
+        # the system linearised after ``entropy_iteration`` steps (0-based index of the loop)
+        report = win.optimize(snapshot_iteration=est.entropy_iteration)
         finite, infinite = win.num_connected(frame_id)
         negative_entropy = None
         if report.snapshot is not None and frame_id in report.snapshot.frame_ids:
@@ -163,9 +208,8 @@ class MonocularVO:
         take = self.selector.update(
             negative_entropy if negative_entropy is not None else float("nan"), finite + infinite
         )
-        inserted = take and not win.is_keyframe(frame_id)
-        if inserted:
-            self._insert_keyframe(frame_id)
+        inserted = take and not win.is_keyframe(frame_id) and self._insert_keyframe(
+            frame_id, forced=finite + infinite < est.keyframe_min_connected)
         self.triangulator.retriangulate_infinite(frame_id)
         win.remove_outliers()
         return negative_entropy, inserted
@@ -194,6 +238,10 @@ class MonocularVO:
             keyframe_taken = True
         else:
             win.add_observations(frame_id, tracks.ids, tracks.positions, tracks.levels, skip_unknown=True)
+        if est.refind_enabled:
+            self.refinder.add_image(frame_id, image)
+            if self.state is MapState.MAPPED and win.num_connected(frame_id)[0] < est.refind_below_finite:
+                self.refinder.refind(frame_id, guess)
 
         finite, _ = win.num_connected(frame_id)
         initialized = (not starts_submap and finite < est.min_finite_observations
@@ -215,12 +263,16 @@ class MonocularVO:
         self.state, status = next_state(self.state, initialized=initialized, lost=lost)
         if lost:
             self._restart()
+            T_w_c, submap = self._start_submap(frame_id, timestamp, tracks, image), self.submap
         else:
-            marg = frames_to_marginalize(win, self.config.backend)
+            keep = {self._init_reference} if (est.init_keep_reference and self.state is not MapState.MAPPED
+                                              and self._init_reference in win) else set()
+            marg = frames_to_marginalize(win, self.config.backend, keep)
             if marg:
                 win.marginalize(marg)
                 for f in marg:
                     self._tracks.pop(f, None)
+                self.refinder.prune()
             self.motion.update(T_w_c, timestamp, measure_motion=self._previous_frame is not None
                                and self.state is MapState.MAPPED)
             self._previous_frame = frame_id

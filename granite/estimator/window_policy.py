@@ -5,7 +5,7 @@ Non-keyframes older than the newest ``max_frames`` frames leave. If more than
 ``marg_seen_fraction`` of its hosted landmarks seen in the newest frame, otherwise the one with
 the largest DSO distance score ``sqrt(|t_k - t_last|) * sum_j 1 / (|t_k - t_j| + eps)``
 (``t`` the camera centres of the keyframes, ``t_last`` the newest keyframe's, ``eps =
-marg_distance_epsilon``). The newest ``max_frames`` frames are never chosen.
+marg_distance_epsilon``). The newest ``max_frames`` frames, and the keyframes the caller asks to keep, are never chosen.
 
 Departures from the reference (granite's ``KeypointVoEstimator::marginalize``): it takes the
 keyframe with the *smallest* score (DSO, which the score comes from, removes the largest: the
@@ -24,9 +24,12 @@ import numpy as np
 from granite.backend import BackendConfig, SlidingWindow
 
 
-def frames_to_marginalize(window: SlidingWindow, config: BackendConfig) -> list[int]:
+def frames_to_marginalize(window: SlidingWindow, config: BackendConfig,
+                          keep: frozenset[int] | set[int] = frozenset()) -> list[int]:
     """Frame ids to pass to :meth:`SlidingWindow.marginalize` (see the module docstring);
-    window size and rule constants come from ``config`` (the ``[backend]`` table)."""
+    window size and rule constants come from ``config`` (the ``[backend]`` table). Keyframes
+    in ``keep`` are never chosen (the estimator keeps its map-initialisation reference while no
+    map exists)."""
     ids = window.frame_ids
     if not ids:
         return []
@@ -37,7 +40,7 @@ def frames_to_marginalize(window: SlidingWindow, config: BackendConfig) -> list[
         return out
     db = window.landmarks
     seen = db.observed_in(ids[-1])
-    candidates = [f for f in kfs if f not in recent]
+    candidates = [f for f in kfs if f not in recent and f not in keep]
     for f in candidates:
         hosted = db.hosted_by(f)
         if not hosted or len(hosted & seen) < config.marg_seen_fraction * len(hosted):

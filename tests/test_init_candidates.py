@@ -1,0 +1,129 @@
+"""Map-initialisation candidates by rotation-compensated parallax, and the initialisation-delay
+metric (synthetic geometry with known truth)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from granite.backend import BackendConfig, SlidingWindow
+from granite.camera import make_camera
+from granite.estimator.landmark_creation import LandmarkTriangulator
+from granite.estimator.map_initialization import init_candidates, rotation_compensated_parallax
+from granite.estimator.tracks import FrameTracks
+from granite.evaluation.initialization import initialization_delay, parallax_baseline
+from granite.trajectory import Trajectory
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _scene(rng, n=300):
+    """Points 5-15 m in front of a camera at the origin looking along +z."""
+    return np.column_stack([rng.uniform(-4, 4, n), rng.uniform(-3, 3, n), rng.uniform(5, 15, n)])
+
+
+def _true_parallax_deg(points_w, R_c_w, t_c_w):
+    """Angle between the bearing of each point in camera k (= world) rotated into c and its
+    bearing in c: the parallax with the exact rotation removed (independent of the code)."""
+    b_k = _unit(points_w)
+    p_c = points_w @ R_c_w.T + t_c_w
+    b_c = _unit(p_c)
+    return np.degrees(np.arccos(np.clip(np.sum((b_k @ R_c_w.T) * b_c, axis=1), -1, 1)))
+
+
+def test_pure_rotation_has_no_parallax():
+    rng = np.random.default_rng(1)
+    pts = _scene(rng)
+    R = Rotation.from_rotvec([0.05, -0.2, 0.1]).as_matrix()
+    angles = rotation_compensated_parallax(_unit(pts), _unit(pts @ R.T))
+    assert np.max(angles) < 1e-4  # degrees (arccos resolution)
+
+
+@pytest.mark.parametrize("seed", [2, 3, 4])
+def test_parallax_matches_the_exact_rotation_removed(seed):
+    """Mostly forward translation with a rotation: the estimate (rotation fitted on the
+    bearings) is close to the parallax with the true rotation removed. In any direction it
+    grows with the baseline and is at most the true one (a fitted rotation absorbs the part of
+    a sideways translation that looks like a rotation)."""
+    rng = np.random.default_rng(seed)
+    pts = _scene(rng)
+    R = Rotation.from_rotvec(rng.normal(0, 0.1, 3)).as_matrix()
+    for direction, close in (([0.2, 0.1, 1.0], True), ([0.6, 0.1, 1.0], False), ([1.0, 0, 0], False)):
+        quantiles = []
+        for baseline in (0.2, 0.5, 1.0):
+            t = baseline * _unit(np.array(direction))
+            C = -R @ t  # camera c at world position t, rotated by R: p_c = R (p - t)
+            truth = np.quantile(_true_parallax_deg(pts, R, C), 0.75)
+            est = np.quantile(rotation_compensated_parallax(_unit(pts), _unit(pts @ R.T + C)), 0.75)
+            assert est <= truth * 1.02
+            if close:
+                assert est == pytest.approx(truth, rel=0.2)
+            quantiles.append(est)
+        assert quantiles[0] < quantiles[1] < quantiles[2]
+
+
+def _pinhole():
+    return make_camera("pinhole", {"fx": 400.0, "fy": 400.0, "cx": 319.5, "cy": 239.5}, 640, 480)
+
+
+def test_candidates_are_ranked_by_parallax_and_need_shared_tracks():
+    """Keyframes at increasing distance from the current frame: the ranking follows the
+    independent parallax; a keyframe sharing too few tracks is not a candidate."""
+    rng = np.random.default_rng(5)
+    cam = _pinhole()
+    pts = _scene(rng, 400)
+    win = SlidingWindow(cam, BackendConfig())
+    tri = LandmarkTriangulator(win, cam, 0.03)
+    current_pos = np.array([1.2, 0.0, 0.3])
+    R_cur = Rotation.from_rotvec([0.0, 0.08, 0.0]).as_matrix()
+    positions = {0: np.array([0.0, 0, 0]), 1: np.array([0.9, 0, 0.2]), 2: np.array([0.5, 0, 0.1]),
+                 3: np.array([0.2, 0, 0.0])}
+    tracks = {}
+
+    def observe(R_c_w, C, ids):
+        p_c = pts[ids] @ R_c_w.T + C
+        uv, ok = cam.project(p_c)
+        ok &= p_c[:, 2] > 0
+        return FrameTracks({int(i): u for i, u, o in zip(ids, uv, ok) if o}, {int(i): 0 for i in ids})
+
+    truth = {}
+    for kf, pos in positions.items():
+        R_kf = Rotation.from_rotvec([0.0, 0.02 * kf, 0.01]).as_matrix()
+        ids = np.arange(len(pts)) if kf != 3 else np.arange(10)  # kf 3 shares only 10 tracks
+        tracks[kf] = observe(R_kf, -R_kf @ pos, ids)
+        win.add_frame(kf, np.eye(4), is_keyframe=True)
+        # independent: parallax of the shared points with the exact relative rotation removed
+        R_rel = R_cur @ R_kf.T
+        p_k = pts @ R_kf.T - R_kf @ pos
+        p_c = pts @ R_cur.T - R_cur @ current_pos
+        ang = np.degrees(np.arccos(np.clip(np.sum((_unit(p_k) @ R_rel.T) * _unit(p_c), axis=1), -1, 1)))
+        truth[kf] = np.quantile(ang, 0.75)
+    tracks[9] = observe(R_cur, -R_cur @ current_pos, np.arange(len(pts)))
+    win.add_frame(9, np.eye(4), is_keyframe=False)
+    cands = init_candidates(win, tri, tracks, 9, min_shared=20)
+    assert [c.keyframe for c in cands] == sorted((0, 1, 2), key=lambda k: -truth[k])
+    for c in cands:
+        assert 0.2 * truth[c.keyframe] < c.parallax_deg <= 1.02 * truth[c.keyframe]
+
+
+def test_initialization_delay_counts_from_the_parallax_onset():
+    t = np.arange(40) * 0.05
+    pos = np.zeros((40, 3))
+    pos[10:, 0] = (t[10:] - t[10]) * 2.0  # still for 10 frames, then 2 m/s
+    poses = np.repeat(np.eye(4)[None], 40, axis=0)
+    poses[:, :3, 3] = pos
+    gt = Trajectory(t, poses)
+    states = ["init"] * 16 + ["tracking"] * 24
+    states[3] = "skipped"
+    d = initialization_delay(t, states, gt, min_baseline=0.1)
+    # onset: the first frame 0.1 m from an earlier one, frame 11 (0.1 m after frame 10);
+    # indices count processed frames (frame 3 skipped), so frames 10 and 15 -> 5 frames.
+    assert d.onset_time == pytest.approx(t[11])
+    assert d.tracking_time == pytest.approx(t[16])
+    assert d.frames == 5 and d.seconds == pytest.approx(0.25)
+    never = initialization_delay(t, ["init"] * 40, gt, min_baseline=0.1)
+    assert never.frames is None and never.seconds is None
+    assert parallax_baseline(10.0, 5.0) == pytest.approx(2 * 10.0 * np.tan(np.radians(2.5)))
