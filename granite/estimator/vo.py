@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from granite.backend import SlidingWindow
+from granite.backend import SlidingWindow, scale_drift_indicator
 from granite.estimator.config import VoConfig
 from granite.estimator.diagnostics import FrameDiagnostics
 from granite.estimator.keyframes import EntropyKeyframeSelector
@@ -213,9 +213,11 @@ class MonocularVO:
         lost = diverged or (len(win.keyframe_ids) >= _FAILURE_MIN_KEYFRAMES
                             and finite + infinite < est.failure_min_connected)
         self.state, status = next_state(self.state, initialized=initialized, lost=lost)
+        drift = None
         if lost:
             self._restart()
         else:
+            drift = scale_drift_indicator(win)  # final estimate, before marginalisation (Sec. V)
             marg = frames_to_marginalize(win, self.config.backend)
             if marg:
                 win.marginalize(marg)
@@ -234,6 +236,8 @@ class MonocularVO:
             timestamp, frame_id, submap, status.value, len(tracks), finite, infinite, keyframe_taken,
             negative_entropy if negative_entropy is not None and np.isfinite(negative_entropy) else None,
             (time.perf_counter() - start) * 1e3,
+            scale_drift_indicator=drift.value if drift is not None else None,
+            scale_drift_indicator_ref=drift.value_ref if drift is not None else None,
         )
         if self.export_landmarks:
             points, inv_dist = self.window_landmarks()
