@@ -108,23 +108,32 @@ def relative_poses(poses: np.ndarray) -> np.ndarray:
     return S
 
 
+def _skew(a: np.ndarray) -> np.ndarray:
+    """``[a]x`` of vectors (..., 3) -> (..., 3, 3)."""
+    out = np.zeros(a.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -a[..., 2], a[..., 1], -a[..., 0]
+    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = a[..., 2], -a[..., 1], a[..., 0]
+    return out
+
+
 def chain_jacobian(poses: np.ndarray) -> np.ndarray:
     """``J = d xi_abs / d [xi_0, eta_0, .., eta_{n-2}]`` (6n, 6n) at absolute poses (n, 4, 4):
     block row ``j`` is keyframe ``j``'s decoupled twist, block column 0 the oldest keyframe's
     twist, column ``k+1`` the decoupled twist of ``S_k`` (see the module docstring)."""
     n = len(poses)
     R, t = poses[:, :3, :3], poses[:, :3, 3]
-    J = np.zeros((6 * n, 6 * n))
+    S = _skew(t[:, None, :] - t[None, :, :])  # [t_j - t_m]x, (n, n, 3, 3)
+    B = np.zeros((n, n, 6, 6))
     eye = np.eye(3)
-    for j in range(n):
-        r = slice(6 * j, 6 * j + 6)
-        J[r, 0:6] = np.block([[eye, -hat(t[j] - t[0])], [np.zeros((3, 3)), eye]])
-        for k in range(j):
-            c = 6 * (k + 1)
-            J[6 * j:6 * j + 3, c:c + 3] = R[k]
-            J[6 * j:6 * j + 3, c + 3:c + 6] = -hat(t[j] - t[k + 1]) @ R[k]
-            J[6 * j + 3:6 * j + 6, c + 3:c + 6] = R[k]
-    return J
+    B[:, 0, :3, :3] = eye
+    B[:, 0, 3:, 3:] = eye
+    B[:, 0, :3, 3:] = -S[:, 0]
+    below = (np.arange(n)[:, None] >= np.arange(1, n)[None, :])[..., None, None]  # j > k
+    Rk = R[:-1][None]  # column k + 1 holds R_k
+    B[:, 1:, :3, :3] = Rk * below
+    B[:, 1:, 3:, 3:] = Rk * below
+    B[:, 1:, :3, 3:] = -np.einsum("jcab,cbd->jcad", S[:, 1:], R[:-1]) * below
+    return B.transpose(0, 2, 1, 3).reshape(6 * n, 6 * n)
 
 
 def chain_jacobian_inverse(poses: np.ndarray) -> np.ndarray:
@@ -153,8 +162,10 @@ def relative_translation_information(H: np.ndarray, poses: np.ndarray) -> np.nda
     J = chain_jacobian(poses)
     H_rel = J.T @ H @ J
     n = len(poses)
-    keep = np.array([6 * (k + 1) + i for k in range(n - 1) for i in range(3)], dtype=np.int64)
-    marg = np.setdiff1d(np.arange(6 * n), keep)
+    is_keep = np.zeros((n, 6), dtype=bool)
+    is_keep[1:, :3] = True  # relative translations; the oldest pose and all rotations go
+    keep = np.flatnonzero(is_keep.ravel())
+    marg = np.flatnonzero(~is_keep.ravel())
     H_t, _ = marginalize_dense(0.5 * (H_rel + H_rel.T), np.zeros(6 * n), keep, marg)
     return H_t
 
@@ -201,8 +212,9 @@ def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True) -> Ke
     (H_p, _, _), (H_s, _, _), (H_n, _, _) = cost.prior_terms(problem,
                                                              cost.no_motion_pairs(problem))
     idx = [problem.index[f] for f in kfs]
-    rows = np.array([6 * i + c for i in idx for c in range(6)], dtype=np.int64)
-    others = np.setdiff1d(np.arange(6 * len(problem.frame_ids)), rows)
+    is_kf = np.zeros((len(problem.frame_ids), 6), dtype=bool)
+    is_kf[idx] = True
+    rows, others = np.flatnonzero(is_kf.ravel()), np.flatnonzero(~is_kf.ravel())
     H_pr = H_p + H_s + H_n
     H_priors, _ = marginalize_dense(H_pr, np.zeros(H_pr.shape[0]), rows, others)
     sf = window.scale_fix
