@@ -148,6 +148,24 @@ def test_no_scale_anchor_is_not_defined_and_holding_the_oldest_keyframe_fixed_wo
     assert vals[0] > 1e-6 * vals[-1]
 
 
+def test_keyframe_system_is_the_keyframe_observations_hessian_with_non_keyframes_marginalised():
+    scene = make_scene(num_frames=9, num_points=300, seed=7, obs_per_landmark=4, recent_frames=3)
+    win = _window(scene, _world(np.eye(3), np.zeros(3), 1.0), 1.0, True, True)
+    system = keyframe_system(win)
+    kfs = win.keyframe_ids
+    assert system.frame_ids == tuple(kfs) and len(kfs) < len(win.frame_ids)
+    problem = win.problem(target_filter=set(kfs))  # every landmark, keyframe observations
+    cost = win.cost_terms()
+    full = cost.system(problem, *cost.linearize(problem), cost.no_motion_pairs(problem))
+    rows = np.concatenate([np.arange(6 * problem.index[f], 6 * problem.index[f] + 6) for f in kfs])
+    np.testing.assert_allclose(system.H_reprojection, full.H_reprojection[np.ix_(rows, rows)],
+                               rtol=1e-9, atol=1e-9 * np.abs(system.H_reprojection).max())
+    H_pose = full.H_prior + full.H_scale_fix + full.H_no_motion
+    other = np.setdiff1d(np.arange(len(H_pose)), rows)
+    expected, _ = marginalize_dense(H_pose, np.zeros(len(H_pose)), rows, other)
+    np.testing.assert_allclose(system.H_priors, expected, rtol=1e-9, atol=1e-6)
+
+
 def test_scale_fix_in_the_window_is_the_anchor_when_included_and_absent_when_excluded():
     scene = make_scene(num_frames=6, num_points=250, seed=6, obs_per_landmark=4)
     win = _window(scene, _world(np.eye(3), np.zeros(3), 1.0), 1.0, True, False)

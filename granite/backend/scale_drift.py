@@ -204,7 +204,11 @@ def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True) -> Ke
     no-motion terms and (``include_scale_fix``) the scale fix of Eq. 9 over all window frames,
     with the non-keyframe frames marginalised out of them."""
     kfs = window.keyframe_ids
-    problem = window.problem(target_filter=set(kfs))
+    db = window.landmarks
+    # only landmarks seen in a keyframe other than their host couple poses (a host observation
+    # constrains the bearing only): the others are left out, which changes nothing but the cost
+    linked = set().union(*(db.observed_in(f) - db.hosted_by(f) for f in kfs)) if kfs else set()
+    problem = window.problem(sorted(linked), target_filter=set(kfs))
     cost = window.cost_terms()
     if not include_scale_fix:
         cost.scale_fix = None
