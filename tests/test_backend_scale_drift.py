@@ -205,6 +205,9 @@ def test_non_finite_information_is_not_defined_never_nan():
     assert res.value is None and res.value_ref is None and "non-finite" in res.reason
     value, value_ref, *_ = indicator_from_information(np.full((6, 6), np.inf), np.ones((2, 3)))
     assert value is None and value_ref is None
+    indefinite = np.diag([-1e-3, 1.0, 2.0, 3.0, 4.0, 5.0])
+    value, value_ref, lam_min, _, reason = indicator_from_information(indefinite, np.ones((2, 3)))
+    assert value is None and value_ref is None and lam_min < 0 and "indefinite" in reason
     rows = [FrameDiagnostics(0.0, 0, 0, "tracking", scale_drift_indicator=float("nan"),
                              scale_drift_indicator_ref=float("inf")),
             FrameDiagnostics(0.05, 1, 0, "tracking", scale_drift_indicator=0.0123,

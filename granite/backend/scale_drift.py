@@ -52,6 +52,11 @@ MIN_KEYFRAMES = 3
 #: scale anchor: the monocular scale direction is a null direction up to the landmark damping
 #: and round-off, measured at about 1e-15..1e-13 of λ_max), Λ is not defined.
 ZERO_INFORMATION_REL = 1e-11
+#: λ_min below minus this fraction of λ_max: the information is indefinite beyond round-off
+#: (a PSD matrix in exact arithmetic), so Λ is not defined. Seen on the 320x240 spiral's last
+#: descent, where the backend's landmark elimination (``schur_reduce``, damped 3x3 inverses)
+#: loses accuracy on near-singular landmark blocks: see docs/backend.md.
+INDEFINITE_REL = 1e-9
 #: Eigenvalues within this fraction of λ_max above λ_min span the smallest eigenspace of the
 #: reference variant (a round-off bound for the eigenvectors of float64 ``eigh``).
 REPEATED_EIGENVALUE_REL = 1e-9
@@ -182,6 +187,8 @@ def indicator_from_information(H_t: np.ndarray, translations: np.ndarray
     lam_min, lam_max = float(vals[0]), float(vals[-1])
     if not lam_max > 0.0:
         return None, None, lam_min, lam_max, "no translation information"
+    if lam_min < -INDEFINITE_REL * lam_max:
+        return None, None, lam_min, lam_max, "indefinite information (round-off)"
     if not lam_min > ZERO_INFORMATION_REL * lam_max:
         return None, None, lam_min, lam_max, "no scale information (no scale anchor)"
     mean_t = float(np.mean(np.linalg.norm(translations, axis=1)))
