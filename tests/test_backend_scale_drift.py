@@ -166,6 +166,17 @@ def test_keyframe_system_is_the_keyframe_observations_hessian_with_non_keyframes
     np.testing.assert_allclose(system.H_priors, expected, rtol=1e-9, atol=1e-6)
 
 
+def test_projected_landmark_elimination_equals_the_kernel_on_a_well_conditioned_window():
+    scene = make_scene(num_frames=7, num_points=250, seed=11, obs_per_landmark=4, max_level=2)
+    win = _window(scene, _world(np.eye(3), np.zeros(3), 1.0), 1.0, True, True)
+    fast, slow = keyframe_system(win), keyframe_system(win, projected=True)
+    scale = np.abs(fast.H_reprojection).max()
+    np.testing.assert_allclose(slow.H_reprojection, fast.H_reprojection, atol=1e-9 * scale)
+    assert np.linalg.eigvalsh(slow.H_reprojection)[0] > -1e-12 * scale
+    assert scale_drift_of_system(slow).value == pytest.approx(scale_drift_of_system(fast).value,
+                                                              rel=1e-6)
+
+
 def test_scale_fix_in_the_window_is_the_anchor_when_included_and_absent_when_excluded():
     scene = make_scene(num_frames=6, num_points=250, seed=6, obs_per_landmark=4)
     win = _window(scene, _world(np.eye(3), np.zeros(3), 1.0), 1.0, True, False)
