@@ -101,6 +101,13 @@ def test_recording_holds_images_points_trajectories_and_series(run, recording):
     after_first_second = sum(t >= times[0] + 1.0 - 1e-6 for t in times)
     assert 0.8 * after_first_second <= len(scale_error) <= after_first_second
     assert np.all(np.abs(scale_error) < 0.5)
+    # The scale-drift indicator: one point per frame where diagnostics.csv defines it.
+    for series, column in (("scale_drift_indicator", "scale_drift_indicator"),
+                           ("scale_drift_indicator_ref", "scale_drift_indicator_ref")):
+        logged = [v[0] for v in _column(table, f"/plots/{series}:Scalar") if v]
+        expected = [getattr(d, column) for d in diags.values() if getattr(d, column) is not None]
+        assert len(logged) == len(expected)
+        np.testing.assert_allclose(sorted(logged), sorted(expected), rtol=1e-12)
     # Keyframe frustums: every frame shows the window's keyframes (one strip per keyframe).
     strips = _column(table, "/world/keyframes:LineStrip3D")
     shown = [len(v) for f, v in zip(frames, strips) if v is not None]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from granite.evaluation import relative_scale_error
+from granite.evaluation import relative_scale_error, scale_drift_rate
 from granite.geometry import so3_exp
 from granite.trajectory import Trajectory
 
@@ -65,3 +65,19 @@ def test_each_submap_uses_its_own_alignment_scale_and_hovering_is_left_out():
     given = relative_scale_error(Trajectory(gt.timestamps, poses, submap), gt, 1.0, {0: 2.0})
     assert given.errors.size and np.all(given.timestamps < 120 * 0.05)  # sub-map 1 has no scale
     np.testing.assert_allclose(given.errors, 0.0, atol=1e-9)
+
+
+def test_drift_rate_is_the_slope_of_the_log_scale():
+    """The estimate's step length grows by the factor exp(r dt) per step: its log scale rises
+    by r per second, which the drift rate recovers (independent of the alignment scale)."""
+    dt, r = 0.05, 0.08
+    gt = _line(np.full(300, 2.0), dt)
+    factor = np.exp(r * dt * np.arange(1, 300))[:, None]
+    poses = gt.poses.copy()
+    poses[1:, :3, 3] = np.cumsum(factor * np.diff(gt.positions, axis=0), axis=0)
+    series = relative_scale_error(Trajectory(gt.timestamps, poses), gt, delta=1.0)
+    rate = scale_drift_rate(series, lag=1.0)
+    assert rate.rates.size > 200
+    np.testing.assert_allclose(rate.rates, r, rtol=1e-2)  # the path curves: step lengths vary a little
+    flat = scale_drift_rate(relative_scale_error(_scaled(gt, 0.37), gt, delta=1.0), lag=1.0)
+    np.testing.assert_allclose(flat.rates, 0.0, atol=1e-9)

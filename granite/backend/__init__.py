@@ -12,6 +12,19 @@ from granite.backend.landmarks import Landmark, LandmarkDatabase, Observation
 from granite.backend.marginalization import MarginalizationReport
 from granite.backend.priors import MargPrior, ScaleFix, pose_delta
 from granite.backend.problem import WindowProblem
+from granite.backend.scale_drift import (
+    KeyframeSystem,
+    ScaleDriftResult,
+    chain_jacobian,
+    chain_jacobian_inverse,
+    indicator_from_information,
+    keyframe_system,
+    projected_reduction,
+    relative_poses,
+    relative_translation_information,
+    scale_drift_indicator,
+    scale_drift_of_system,
+)
 from granite.backend.solver import OptimizeReport
 from granite.backend.window import FrameState, SlidingWindow
 
@@ -31,4 +44,15 @@ __all__ = [
     "marginalize_dense",
     "marginal_information",
     "pose_delta",
+    "KeyframeSystem",
+    "ScaleDriftResult",
+    "chain_jacobian",
+    "chain_jacobian_inverse",
+    "indicator_from_information",
+    "keyframe_system",
+    "projected_reduction",
+    "relative_poses",
+    "relative_translation_information",
+    "scale_drift_indicator",
+    "scale_drift_of_system",
 ]

@@ -20,6 +20,11 @@ One row per processed frame (skipped frames included). Columns:
 ``processing_ms``      wall-clock time spent on this frame
 ``warnings``           Python warnings (e.g. numpy's RuntimeWarning) raised while processing
                        it; each kind is listed once in ``summary.json``
+``scale_drift_indicator``      Λ_scaledrift of paper Eq. 17 at this frame's final estimate
+                       (:mod:`granite.backend.scale_drift`); empty when not defined (fewer than
+                       3 keyframes, no scale anchor, not tracking)
+``scale_drift_indicator_ref``  the released reference code's variant of Λ (eigenvector-weighted
+                       translations); empty when not defined
 =====================  =====================================================================
 
 Unavailable values are written as empty fields, never as NaN. Reading derives the columns and
@@ -54,6 +59,8 @@ class FrameDiagnostics:
     negative_entropy: float | None = None
     processing_ms: float = 0.0
     warnings: int = 0
+    scale_drift_indicator: float | None = None
+    scale_drift_indicator_ref: float | None = None
 
 
 COLUMNS = tuple(f.name for f in fields(FrameDiagnostics))

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from granite.backend import SlidingWindow
+from granite.backend import SlidingWindow, scale_drift_indicator
 from granite.estimator.config import VoConfig
 from granite.estimator.diagnostics import FrameDiagnostics
 from granite.estimator.keyframes import EntropyKeyframeSelector
@@ -261,10 +261,12 @@ class MonocularVO:
         lost = diverged or (len(win.keyframe_ids) >= _FAILURE_MIN_KEYFRAMES
                             and finite + infinite < est.failure_min_connected)
         self.state, status = next_state(self.state, initialized=initialized, lost=lost)
+        drift = None
         if lost:
             self._restart()
             T_w_c, submap = self._start_submap(frame_id, timestamp, tracks, image), self.submap
         else:
+            drift = scale_drift_indicator(win)  # final estimate, before marginalisation (Sec. V)
             keep = {self._init_reference} if (est.init_keep_reference and self.state is not MapState.MAPPED
                                               and self._init_reference in win) else set()
             marg = frames_to_marginalize(win, self.config.backend, keep)
@@ -286,6 +288,8 @@ class MonocularVO:
             timestamp, frame_id, submap, status.value, len(tracks), finite, infinite, keyframe_taken,
             negative_entropy if negative_entropy is not None and np.isfinite(negative_entropy) else None,
             (time.perf_counter() - start) * 1e3,
+            scale_drift_indicator=drift.value if drift is not None else None,
+            scale_drift_indicator_ref=drift.value_ref if drift is not None else None,
         )
         if self.export_landmarks:
             points, inv_dist = self.window_landmarks()

@@ -7,7 +7,12 @@ from granite.evaluation.association import associate
 from granite.evaluation.ate import ALIGNMENTS, AteResult, align_poses, ate
 from granite.evaluation.evaluate import EvaluationResult, evaluate, overlap_path_length
 from granite.evaluation.rpe import DEFAULT_RPE_DELTA, RpeResult, rpe
-from granite.evaluation.scale_drift import ScaleErrorSeries, relative_scale_error
+from granite.evaluation.scale_drift import (
+    ScaleDriftRate,
+    ScaleErrorSeries,
+    relative_scale_error,
+    scale_drift_rate,
+)
 from granite.evaluation.tracking import longest_run_duration, restart_count, tracking_percentage
 
 __all__ = [
@@ -24,6 +29,8 @@ __all__ = [
     "longest_run_duration",
     "overlap_path_length",
     "relative_scale_error",
+    "scale_drift_rate",
+    "ScaleDriftRate",
     "restart_count",
     "rpe",
     "tracking_percentage",

@@ -67,3 +67,37 @@ def relative_scale_error(
     keep = moved & np.isfinite(s_align)
     errors = s_align[keep] / pairs.scales[keep] - 1.0
     return ScaleErrorSeries(float(delta), t[keep], errors)
+
+
+@dataclass(frozen=True, eq=False)
+class ScaleDriftRate:
+    """``rates[k]`` [1/s]: the true scale-drift rate at ``timestamps[k]`` (seconds)."""
+
+    lag: float
+    timestamps: np.ndarray
+    rates: np.ndarray
+
+
+def scale_drift_rate(series: ScaleErrorSeries, lag: float = 1.0,
+                     submaps: np.ndarray | None = None) -> ScaleDriftRate:
+    """True scale-drift rate: the change of the log scale ``l_t = ln(1 + e_t)`` of a
+    :class:`ScaleErrorSeries` over ``lag`` seconds, per second,
+    ``(l_t - l_{t - lag}) / lag``; the sample nearest to ``t - lag`` (within ``lag / 2``) is
+    used, only inside one sub-map (``submaps``: the sub-map of each sample, default one)."""
+    t, e = series.timestamps, series.errors
+    sub = np.zeros(t.size, dtype=np.int64) if submaps is None else np.asarray(submaps)
+    ok = 1.0 + e > 0.0
+    t, e, sub = t[ok], e[ok], sub[ok]
+    log_scale = np.log1p(e)
+    out_t, out_r = [], []
+    for k in range(t.size):
+        j = int(np.searchsorted(t, t[k] - lag))
+        cands = [i for i in (j - 1, j) if 0 <= i < k]
+        if not cands:
+            continue
+        i = min(cands, key=lambda c: abs(t[c] - (t[k] - lag)))
+        if abs(t[i] - (t[k] - lag)) > 0.5 * lag or sub[i] != sub[k]:
+            continue
+        out_t.append(t[k])
+        out_r.append((log_scale[k] - log_scale[i]) / (t[k] - t[i]))
+    return ScaleDriftRate(float(lag), np.array(out_t), np.array(out_r))

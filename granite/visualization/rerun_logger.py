@@ -14,7 +14,11 @@ Entity layout (world frame z up for the test-bench; all poses ``T_w_c``):
 ``world/camera/image/patches``  a square per track: its patch extent at the creation level
 ``world/keyframes``             keyframes of the current window as blue wireframe frustums
 ``world/landmarks``             landmarks of the window, same colours as the 2D points
-``plots/<name>``                time series (tracked points, landmarks, entropy, relative scale error)
+``plots/<name>``                time series (tracked points, landmarks, entropy, relative scale error,
+                                the scale-drift indicator Λ ``scale_drift_indicator`` and its
+                                reference variant ``scale_drift_indicator_ref``, and
+                                ``log10_scale_drift_indicator``: rerun 0.23's time-series views
+                                have no logarithmic axis, and Λ spans decades)
 ==============================  ==========================================================
 
 Timelines: ``frame`` (sequence, dataset frame index) and ``time`` (seconds since the first
@@ -66,8 +70,9 @@ def frustum_wireframes(poses_w_c: np.ndarray, K: np.ndarray, resolution, depth: 
 
 
 def default_blueprint() -> rrb.Blueprint:
-    """Camera image with tracks beside the 3D world; underneath, three time series: point
-    counts, negative entropy with keyframe events, and the relative scale error."""
+    """Camera image with tracks beside the 3D world; underneath, the time series: point
+    counts, negative entropy with keyframe events, the relative scale error, and beside it the
+    scale-drift indicator Λ (Eq. 17 and the reference variant) and log10 Λ."""
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
@@ -80,7 +85,13 @@ def default_blueprint() -> rrb.Blueprint:
                 rrb.TimeSeriesView(name="negative entropy, keyframes", origin="plots", contents=[
                     "plots/negative_entropy", "plots/keyframe", "plots/submap"]),
                 rrb.TimeSeriesView(name="relative scale error", origin="plots", contents=[
-                    "plots/relative_scale_error", "plots/scale_drift_indicator"]),
+                    "plots/relative_scale_error"]),
+                rrb.TimeSeriesView(name="scale-drift indicator Λ (Eq. 17, reference variant)",
+                                   origin="plots", contents=[
+                                       "plots/scale_drift_indicator",
+                                       "plots/scale_drift_indicator_ref"]),
+                rrb.TimeSeriesView(name="log10 Λ", origin="plots", contents=[
+                    "plots/log10_scale_drift_indicator"]),
             ),
             row_shares=[3, 1],
         ),

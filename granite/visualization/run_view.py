@@ -94,6 +94,13 @@ class RunView:
         log.log_scalar("submap", diag.submap)
         if diag.negative_entropy is not None:
             log.log_scalar("negative_entropy", diag.negative_entropy)
+        lam = getattr(diag, "scale_drift_indicator", None)
+        if lam is not None and lam > 0:
+            log.log_scalar("scale_drift_indicator", lam)
+            log.log_scalar("log10_scale_drift_indicator", float(np.log10(lam)))
+        lam_ref = getattr(diag, "scale_drift_indicator_ref", None)
+        if lam_ref is not None:
+            log.log_scalar("scale_drift_indicator_ref", lam_ref)
         self._records.append(record)
         self.seconds += time.perf_counter() - start
 

@@ -1,0 +1,256 @@
+"""Validation of the scale-drift indicator Λ_scaledrift (paper Sec. V, Eq. 17, Fig. 4).
+
+    python benchmarks/bench_scale_drift.py PATH [PATH ...] [--out DIR] [--delta 1] [--lag 1]
+                                           [--bin 5] [--plot] [--cost DATASET]
+                                           [--exclude-scale-fix]
+
+PATH is a run folder of `granite run` (diagnostics.csv with the scale_drift_indicator columns;
+its dataset is read from summary.json) or a test-bench dataset folder, which is run first (in
+process, default configuration, as `granite run`) into DIR/<name> (skipped when that run folder
+exists; with --exclude-scale-fix into DIR/<name>_no_scale_fix, Λ leaving the scale fix of Eq. 9
+out while it is in the window, as the reference does). For every run it prints,
+for Eq. 17 (``Λ``) and the reference code's variant (``Λ_ref``) side by side:
+
+* defined: the share of tracked frames (state tracking / reinit) with Λ defined, counted from
+  the frame where the window holds 3 keyframes past the (last) initialisation ("kf>=3", i.e.
+  one keyframe after the two of the map initialisation) and from the third keyframe taken after
+  it ("kf+3");
+* ρ(height): Spearman correlation of Λ with the true camera height (ground-truth z);
+* ρ(bins): Spearman correlation, over ``--bin`` second bins, of the median Λ with the RMS true
+  scale-drift rate (:func:`granite.evaluation.scale_drift_rate`: change of the log of the true
+  relative scale error over ``--delta`` s of motion, per second, over ``--lag`` s);
+* the median Λ and the RMS drift rate of the run; with several runs, Kendall's τ of the run
+  ordering by median Λ against the ordering by RMS drift rate.
+
+--plot writes DIR/<name>_scale_drift.png (height, true relative scale error, Λ and Λ_ref,
+drift rate over time, as the paper's Fig. 4). --cost DATASET runs the VO in-process on the
+dataset and times the indicator per frame (keyframe system: linearisation of the keyframe
+observations and landmark elimination; chain: reparametrisation, Schur, eigen-solver).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+from scipy.stats import kendalltau, spearmanr  # noqa: E402
+
+from granite.estimator.diagnostics import read_diagnostics  # noqa: E402
+from granite.evaluation import ate, relative_scale_error, scale_drift_rate  # noqa: E402
+from granite.io import open_dataset  # noqa: E402
+from granite.io.run_folder import read_estimate  # noqa: E402
+
+TRACKED = ("tracking", "reinit")
+
+
+def _run_folder(path: Path, out: Path, exclude_scale_fix: bool) -> Path:
+    """``path`` itself when it is a run folder, else the run of the dataset ``path`` in
+    ``out`` (run in-process with the default configuration when it does not exist yet)."""
+    if (path / "diagnostics.csv").is_file():
+        return path
+    run = out / (path.name + ("_no_scale_fix" if exclude_scale_fix else ""))
+    if not (run / "diagnostics.csv").is_file():
+        import granite.estimator.vo as vo_module
+        from granite.backend import scale_drift_indicator
+        from granite.cli.run_cmd import perform_run
+        from granite.estimator.config import VoConfig
+
+        print(f"running the VO on {path} -> {run}", flush=True)
+        vo_module.scale_drift_indicator = functools.partial(
+            scale_drift_indicator, include_scale_fix=not exclude_scale_fix)
+        perform_run(open_dataset(path), VoConfig(), run, progress=False)
+        vo_module.scale_drift_indicator = scale_drift_indicator
+    return run
+
+
+def _eligible(diags) -> tuple[np.ndarray, np.ndarray]:
+    """Masks of the tracked frames once the window holds 3 keyframes past the last
+    initialisation (the map initialisation makes 2), and from the 3rd keyframe after it."""
+    a = np.zeros(len(diags), bool)
+    b = np.zeros(len(diags), bool)
+    since, prev = None, None
+    for i, d in enumerate(diags):
+        started = (d.state == "reinit" or (d.state == "tracking" and prev is not None and
+                                           (prev.state in ("init", "lost") or prev.submap != d.submap)))
+        if started:
+            since = 0
+        elif since is not None and d.keyframe:
+            since += 1
+        if d.state == "lost":
+            since = None
+        if d.state in TRACKED and since is not None:
+            a[i] = since >= 1
+            b[i] = since >= 3
+        prev = d
+    return a, b
+
+
+def _spearman(x, y) -> float:
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    if ok.sum() < 3:
+        return float("nan")
+    return float(spearmanr(x[ok], y[ok]).statistic)
+
+
+def analyse(run: Path, delta: float, lag: float, bin_s: float, plot_dir: Path | None,
+            min_motion: float = 0.1) -> dict:
+    diags = read_diagnostics(run / "diagnostics.csv")
+    summary = json.loads((run / "summary.json").read_text())
+    dataset = open_dataset(summary["dataset"])
+    gt = dataset.ground_truth
+    traj, _ = read_estimate(run)
+    t = np.array([d.timestamp for d in diags])
+    lam = {k: np.array([np.nan if getattr(d, c) is None else getattr(d, c) for d in diags])
+           for k, c in (("eq17", "scale_drift_indicator"), ("ref", "scale_drift_indicator_ref"))}
+    height = np.interp(t, gt.timestamps, gt.positions[:, 2])
+    scales = ate(traj, gt, align="sim3").scales
+    series = relative_scale_error(traj, gt, delta, scales, min_motion=min_motion)
+    rows = np.clip(np.searchsorted(traj.timestamps, series.timestamps - 1e-9), 0, len(traj) - 1)
+    rate = scale_drift_rate(series, lag, traj.submap_ids()[rows])
+    elig_a, elig_b = _eligible(diags)
+    t0 = t[0]
+    edges = np.arange(t0, t[-1] + bin_s, bin_s)
+    out = {"run": str(run), "dataset": summary["dataset"], "frames": len(diags),
+           "tracked": int(sum(d.state in TRACKED for d in diags)),
+           "rms_drift_rate": float(np.sqrt(np.mean(rate.rates ** 2))) if rate.rates.size else None,
+           "rms_scale_error": series.rms}
+    for key, v in lam.items():
+        defined = np.isfinite(v)
+        med_lam, rms_rate = [], []
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            m = defined & (t >= lo) & (t < hi)
+            r = (rate.timestamps >= lo) & (rate.timestamps < hi)
+            if m.sum() >= 3 and r.sum() >= 3:
+                med_lam.append(float(np.median(v[m])))
+                rms_rate.append(float(np.sqrt(np.mean(rate.rates[r] ** 2))))
+        out[key] = {
+            "defined_kf3": float(defined[elig_a].mean()) if elig_a.any() else None,
+            "defined_kf_plus3": float(defined[elig_b].mean()) if elig_b.any() else None,
+            "spearman_height": _spearman(v[defined], height[defined]),
+            "spearman_bins": _spearman(med_lam, rms_rate), "bins": len(med_lam),
+            "median": float(np.median(v[defined])) if defined.any() else None,
+        }
+    if plot_dir is not None:
+        _plot(plot_dir / f"{run.name}_scale_drift.png", t - t0, height, series, rate, lam, t0)
+    return out
+
+
+def _plot(path: Path, t, height, series, rate, lam, t0) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(10, 8), layout="constrained")
+    ax = fig.subplots(4, 1, sharex=True)
+    ax[0].plot(t, height, color="tab:orange")
+    ax[0].set(ylabel="height [m]")
+    ax[1].plot(series.timestamps - t0, 100 * series.errors, color="tab:blue")
+    ax[1].set(ylabel="true rel. scale error [%]")
+    ax[2].plot(t, lam["eq17"], color="tab:green", label="Λ (Eq. 17)")
+    ax[2].plot(t, lam["ref"], color="tab:purple", label="Λ_ref (reference variant)")
+    ax[2].set(ylabel="Λ", yscale="log")
+    ax[2].legend(fontsize=8)
+    ax[3].plot(rate.timestamps - t0, rate.rates, color="tab:gray", lw=0.8)
+    ax[3].set(ylabel="scale-drift rate [1/s]", xlabel="time [s]")
+    for a in ax:
+        a.grid(alpha=0.3)
+    FigureCanvasAgg(fig).print_png(str(path))
+    print("wrote", path)
+
+
+def cost(dataset_path: str) -> dict:
+    """Per-frame time of the indicator inside the VO (in-process run of the dataset): the whole
+    call (with the projected fallback where it is taken), and separately the keyframe system
+    (linearisation of the keyframe observations, landmark elimination) and the chain part
+    (reparametrisation, Schur complements, eigen-solver) of the fast path."""
+    import granite.estimator.vo as vo_module
+    from granite.backend import keyframe_system, scale_drift_indicator, scale_drift_of_system
+    from granite.estimator.config import VoConfig
+    from granite.estimator.runner import run_vo
+
+    samples = []
+
+    def timed(window, include_scale_fix=True):
+        a = time.perf_counter()
+        res = scale_drift_indicator(window, include_scale_fix)
+        b = time.perf_counter()
+        n = len(window.keyframe_ids)
+        if n >= 3:
+            system = keyframe_system(window, include_scale_fix)
+            c = time.perf_counter()
+            scale_drift_of_system(system)
+            d = time.perf_counter()
+            samples.append((n, 1e3 * (b - a), 1e3 * (c - b), 1e3 * (d - c)))
+        return res
+
+    vo_module.scale_drift_indicator = timed
+    run_vo(open_dataset(dataset_path), VoConfig(), progress=False)
+    arr = np.array(samples)
+    total = arr[:, 1]
+    return {"frames": len(arr), "max_keyframes": int(arr[:, 0].max()),
+            "total_ms": {"mean": float(total.mean()), "median": float(np.median(total)),
+                         "p95": float(np.percentile(total, 95)), "max": float(total.max())},
+            "keyframe_system_ms_mean": float(arr[:, 2].mean()),
+            "chain_ms_mean": float(arr[:, 3].mean()), "chain_ms_max": float(arr[:, 3].max())}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("paths", nargs="*", type=Path)
+    ap.add_argument("--out", type=Path, default=Path("/tmp/bench_scale_drift"))
+    ap.add_argument("--delta", type=float, default=1.0)
+    ap.add_argument("--lag", type=float, default=1.0)
+    ap.add_argument("--bin", type=float, default=5.0)
+    ap.add_argument("--min-motion", type=float, default=0.1,
+                    help="true motion over --delta below which a pair gives no scale (m)")
+    ap.add_argument("--plot", action="store_true")
+    ap.add_argument("--cost", default=None)
+    ap.add_argument("--exclude-scale-fix", action="store_true",
+                    help="datasets run here leave the scale fix out of Λ while it is in the window "
+                         "(the reference's choice; runs go to DIR/<name>_no_scale_fix)")
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = []
+    for path in args.paths:
+        results.append(analyse(_run_folder(path, args.out, args.exclude_scale_fix), args.delta, args.lag, args.bin,
+                               args.out if args.plot else None, args.min_motion))
+    fmt = lambda x, p=3: "  n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{p}f}"  # noqa: E731
+    if results:
+        print(f"\nΔ = {args.delta:g} s (true motion >= {args.min_motion:g} m), lag = {args.lag:g} s, "
+              f"bins of {args.bin:g} s")
+        print(f"{'run':34s} {'variant':7s} {'def kf>=3':>9s} {'def kf+3':>9s} {'ρ(height)':>9s} "
+              f"{'ρ(bins)':>8s} {'bins':>4s} {'median Λ':>9s} {'RMS rate':>9s}")
+        for r in results:
+            for key, label in (("eq17", "Eq. 17"), ("ref", "ref")):
+                v = r[key]
+                print(f"{Path(r['run']).name[:34]:34s} {label:7s} {fmt(v['defined_kf3']):>9s} "
+                      f"{fmt(v['defined_kf_plus3']):>9s} {fmt(v['spearman_height']):>9s} "
+                      f"{fmt(v['spearman_bins']):>8s} {v['bins']:4d} {fmt(v['median'], 4):>9s} "
+                      f"{fmt(r['rms_drift_rate'], 4):>9s}")
+    if len(results) >= 2:
+        for key, label in (("eq17", "Eq. 17"), ("ref", "reference variant")):
+            pairs = [(r[key]["median"], r["rms_drift_rate"]) for r in results
+                     if r[key]["median"] is not None and r["rms_drift_rate"] is not None]
+            tau = kendalltau(*zip(*pairs)).statistic if len(pairs) >= 2 else float("nan")
+            print(f"Kendall τ (median Λ vs RMS drift rate, {len(pairs)} runs), {label}: {tau:.3f}")
+    if args.cost:
+        c = cost(args.cost)
+        print(f"\ncost on {args.cost}: {c['frames']} frames with >= 3 keyframes (at most "
+              f"{c['max_keyframes']}): total per frame mean {c['total_ms']['mean']:.2f} ms, median "
+              f"{c['total_ms']['median']:.2f}, p95 {c['total_ms']['p95']:.2f}, max {c['total_ms']['max']:.2f}; "
+              f"fast path: keyframe system {c['keyframe_system_ms_mean']:.2f} ms, chain + Schur + eigen "
+              f"{c['chain_ms_mean']:.2f} ms (max {c['chain_ms_max']:.2f})")
+        results.append({"cost": c})
+    (args.out / "bench_scale_drift.json").write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,312 @@
+"""Scale-drift indicator Λ_scaledrift (paper Sec. V, Eq. 11-17), pure numpy.
+
+Conventions: poses ``T_w_c`` (camera into world); every pose increment is the decoupled left
+increment of paper Eq. 14, twist ``[v, w]`` (translation first): ``R <- exp([w]x) R``,
+``t <- t + v``. The keyframes ``k = 0 .. n-1`` (ascending frame id) are re-parametrised as a
+kinematic chain: the absolute pose of the oldest keyframe ``T_0`` and the relative poses
+
+    S_k = T_k^-1 T_{k+1}     (maps keyframe k+1 into k; T_{k+1} = T_k S_k; paper Eq. 15's
+                              T_{b_{k+1}}^{b_k}, the reference code's ``T_k.inverse() * T_{k+1}``)
+
+each with its own decoupled increment ``eta_k = [nu_k, omega_k]``. To first order (exact
+Jacobian, derived in docs/backend.md, "Scale-drift indicator"):
+
+    omega_k = R_k^T (w_{k+1} - w_k),   nu_k = R_k^T (v_{k+1} - v_k) + R_k^T [t_{k+1} - t_k]x w_k
+
+and its inverse, the chain Jacobian ``J = d xi_abs / d [xi_0, eta_0 .. eta_{n-2}]``:
+
+    d xi_j / d xi_0    = [[I, -[t_j - t_0]x], [0, I]]
+    d xi_j / d eta_k   = [[R_k, -[t_j - t_{k+1}]x R_k], [0, R_k]]   for k < j, else 0
+
+The information of the chain is ``H_rel = J^T H J``. Then the absolute pose of the oldest
+keyframe and every relative rotation are marginalised (Schur complement); what remains is the
+relative-translation information ``H_t`` (``3(n-1)`` square) and
+
+    Λ = (sqrt(λ_min(H_t)) * mean_k |trans(S_k)|)^-1                         (paper Eq. 17)
+    Λ_ref = (sqrt(λ_min(H_t)) * |sqrt(|q|) ∘ [trans(S_0); ..; trans(S_{n-2})]|)^-1
+
+``Λ_ref`` is the released reference code's variant: ``q`` the unit eigenvector of λ_min, each
+relative translation weighted elementwise by the square root of the magnitude of its entries,
+then the norm of the whole stacked vector (no mean). A (nearly) repeated λ_min makes ``q``
+arbitrary inside its eigenspace; we use the basis-free ``diag(Q Q^T)^(1/4)`` of the eigenspace
+``Q`` instead of ``sqrt(|q|)`` (identical for a simple eigenvalue).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from granite.backend.hessian import marginalize_dense
+from granite.geometry import hat
+
+if TYPE_CHECKING:
+    from granite.backend.window import SlidingWindow
+
+#: Fewer keyframes than this: Λ is not defined (paper: a chain of at least two relative poses).
+MIN_KEYFRAMES = 3
+#: λ_min at or below this fraction of λ_max(H_t): the window has no scale information (no
+#: scale anchor: the monocular scale direction is a null direction up to the landmark damping
+#: and round-off, measured at about 1e-15..1e-13 of λ_max), Λ is not defined.
+ZERO_INFORMATION_REL = 1e-11
+#: λ_min below minus this fraction of λ_max: the information is indefinite beyond round-off
+#: (a PSD matrix in exact arithmetic), so Λ is not defined. Seen on the 320x240 spiral's last
+#: descent, where the backend's landmark elimination (``schur_reduce``, damped 3x3 inverses)
+#: loses accuracy on near-singular landmark blocks: see docs/backend.md.
+INDEFINITE_REL = 1e-9
+#: Eigenvalues within this fraction of λ_max above λ_min span the smallest eigenspace of the
+#: reference variant (a round-off bound for the eigenvectors of float64 ``eigh``).
+REPEATED_EIGENVALUE_REL = 1e-9
+
+
+@dataclasses.dataclass(frozen=True)
+class KeyframeSystem:
+    """The window's information over its keyframes only, at one estimate.
+
+    Keyframe ``frame_ids[k]`` owns rows ``6k:6k+6`` (twist ``[v, w]`` on ``T_w_c``).
+    ``H_reprojection``: reprojection terms of observations made in keyframes, landmarks
+    eliminated (Schur complement); ``H_priors``: marginalisation prior (+ scale fix when
+    included, + no-motion terms) with the non-keyframe states marginalised out of them.
+    ``poses`` are the current estimates, ``poses_lin`` the points the Jacobians were evaluated
+    at (first-estimate points for prior states, the current estimate for the others).
+    """
+
+    frame_ids: tuple[int, ...]
+    poses: np.ndarray
+    poses_lin: np.ndarray
+    H_reprojection: np.ndarray
+    H_priors: np.ndarray
+    scale_fix_included: bool
+
+    @property
+    def H(self) -> np.ndarray:
+        return self.H_reprojection + self.H_priors
+
+
+@dataclasses.dataclass(frozen=True)
+class ScaleDriftResult:
+    """Λ (Eq. 17) and the reference variant, ``None`` where not defined (``reason`` says why).
+    ``lambda_min``/``lambda_max`` of ``H_t`` [1/map unit^2], ``mean_translation`` [map units]."""
+
+    value: float | None
+    value_ref: float | None
+    num_keyframes: int
+    lambda_min: float | None = None
+    lambda_max: float | None = None
+    mean_translation: float | None = None
+    reason: str = ""
+
+    @property
+    def defined(self) -> bool:
+        return self.value is not None
+
+
+def relative_poses(poses: np.ndarray) -> np.ndarray:
+    """``S_k = T_k^-1 T_{k+1}`` (n-1, 4, 4) of absolute poses ``T_w_c`` (n, 4, 4)."""
+    R, t = poses[:, :3, :3], poses[:, :3, 3]
+    S = np.tile(np.eye(4), (len(poses) - 1, 1, 1))
+    S[:, :3, :3] = np.einsum("kji,kjl->kil", R[:-1], R[1:])
+    S[:, :3, 3] = np.einsum("kji,kj->ki", R[:-1], t[1:] - t[:-1])
+    return S
+
+
+def _skew(a: np.ndarray) -> np.ndarray:
+    """``[a]x`` of vectors (..., 3) -> (..., 3, 3)."""
+    out = np.zeros(a.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -a[..., 2], a[..., 1], -a[..., 0]
+    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = a[..., 2], -a[..., 1], a[..., 0]
+    return out
+
+
+def chain_jacobian(poses: np.ndarray) -> np.ndarray:
+    """``J = d xi_abs / d [xi_0, eta_0, .., eta_{n-2}]`` (6n, 6n) at absolute poses (n, 4, 4):
+    block row ``j`` is keyframe ``j``'s decoupled twist, block column 0 the oldest keyframe's
+    twist, column ``k+1`` the decoupled twist of ``S_k`` (see the module docstring)."""
+    n = len(poses)
+    R, t = poses[:, :3, :3], poses[:, :3, 3]
+    S = _skew(t[:, None, :] - t[None, :, :])  # [t_j - t_m]x, (n, n, 3, 3)
+    B = np.zeros((n, n, 6, 6))
+    eye = np.eye(3)
+    B[:, 0, :3, :3] = eye
+    B[:, 0, 3:, 3:] = eye
+    B[:, 0, :3, 3:] = -S[:, 0]
+    below = (np.arange(n)[:, None] >= np.arange(1, n)[None, :])[..., None, None]  # j > k
+    Rk = R[:-1][None]  # column k + 1 holds R_k
+    B[:, 1:, :3, :3] = Rk * below
+    B[:, 1:, 3:, 3:] = Rk * below
+    B[:, 1:, :3, 3:] = -np.einsum("jcab,cbd->jcad", S[:, 1:], R[:-1]) * below
+    return B.transpose(0, 2, 1, 3).reshape(6 * n, 6 * n)
+
+
+def chain_jacobian_inverse(poses: np.ndarray) -> np.ndarray:
+    """``d [xi_0, eta_0, .., eta_{n-2}] / d xi_abs`` (6n, 6n): the inverse of
+    :func:`chain_jacobian`, from the first-order expansion of ``S_k = T_k^-1 T_{k+1}``."""
+    n = len(poses)
+    R, t = poses[:, :3, :3], poses[:, :3, 3]
+    A = np.zeros((6 * n, 6 * n))
+    A[0:6, 0:6] = np.eye(6)
+    for k in range(n - 1):
+        r, a, b = 6 * (k + 1), 6 * k, 6 * (k + 1)
+        Rt = R[k].T
+        A[r:r + 3, a:a + 3] = -Rt
+        A[r:r + 3, b:b + 3] = Rt
+        A[r:r + 3, a + 3:a + 6] = Rt @ hat(t[k + 1] - t[k])
+        A[r + 3:r + 6, a + 3:a + 6] = -Rt
+        A[r + 3:r + 6, b + 3:b + 6] = Rt
+    return A
+
+
+def relative_translation_information(H: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """``H_t`` (3(n-1) square): the absolute information ``H`` (6n square, decoupled twists at
+    ``poses``) moved onto the chain (``J^T H J``), then the oldest keyframe's absolute pose and
+    every relative rotation marginalised (Schur complement, generalised inverse for
+    unconstrained directions)."""
+    J = chain_jacobian(poses)
+    H_rel = J.T @ H @ J
+    n = len(poses)
+    is_keep = np.zeros((n, 6), dtype=bool)
+    is_keep[1:, :3] = True  # relative translations; the oldest pose and all rotations go
+    keep = np.flatnonzero(is_keep.ravel())
+    marg = np.flatnonzero(~is_keep.ravel())
+    H_t, _ = marginalize_dense(0.5 * (H_rel + H_rel.T), np.zeros(6 * n), keep, marg)
+    return H_t
+
+
+def indicator_from_information(H_t: np.ndarray, translations: np.ndarray
+                               ) -> tuple[float | None, float | None, float, float, str]:
+    """``(Λ, Λ_ref, λ_min, λ_max, reason)`` from the relative-translation information ``H_t``
+    and the relative translations (n-1, 3) (see the module docstring); ``None`` values where
+    not defined, with the reason."""
+    translations = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
+    if not (np.all(np.isfinite(H_t)) and np.all(np.isfinite(translations))):
+        return None, None, math.nan, math.nan, "non-finite information or poses"
+    vals, vecs = np.linalg.eigh(0.5 * (H_t + H_t.T))
+    lam_min, lam_max = float(vals[0]), float(vals[-1])
+    if not lam_max > 0.0:
+        return None, None, lam_min, lam_max, "no translation information"
+    if lam_min < -INDEFINITE_REL * lam_max:
+        return None, None, lam_min, lam_max, "indefinite information (round-off)"
+    if not lam_min > ZERO_INFORMATION_REL * lam_max:
+        return None, None, lam_min, lam_max, "no scale information (no scale anchor)"
+    mean_t = float(np.mean(np.linalg.norm(translations, axis=1)))
+    if not mean_t > 0.0:
+        return None, None, lam_min, lam_max, "keyframes at one position"
+    value = 1.0 / (math.sqrt(lam_min) * mean_t)
+    cluster = vals <= lam_min + REPEATED_EIGENVALUE_REL * lam_max
+    Q = vecs[:, cluster]
+    weights = np.sum(Q * Q, axis=1) ** 0.25
+    weighted = float(np.linalg.norm(weights * translations.ravel()))
+    value_ref = 1.0 / (math.sqrt(lam_min) * weighted) if weighted > 0.0 else None
+    value = value if math.isfinite(value) else None
+    value_ref = value_ref if value_ref is not None and math.isfinite(value_ref) else None
+    return value, value_ref, lam_min, lam_max, "" if value is not None else "not finite"
+
+
+def projected_reduction(problem, lin) -> np.ndarray:
+    """Reduced camera system (6K, 6K) of a linearised problem with every landmark eliminated
+    by orthogonal projection instead of the damped 3x3 inverse of ``schur_reduce``: per
+    landmark the weighted Jacobian rows ``[A_p, A_l]`` give ``A_p' = (I - U U^T) A_p`` (``U``
+    the left singular vectors of ``A_l`` above ``1e-12`` of its largest singular value) and
+    ``H += A_p'^T A_p'``, PSD by construction and accurate for near-singular landmark blocks.
+    A numpy loop over landmarks (tens of ms): the fallback when the fast system is indefinite."""
+    pk = problem.packed
+    K = len(problem.frame_ids)
+    H = np.zeros((6 * K, 6 * K))
+    for i in range(len(pk.lm_ptr) - 1):
+        ks = [k for k in range(pk.lm_ptr[i], pk.lm_ptr[i + 1]) if lin.w[k] > 0.0]
+        if not ks:
+            continue
+        h = pk.lm_host[i]
+        A_p = np.zeros((2 * len(ks), 6 * K))
+        A_l = np.empty((2 * len(ks), 3))
+        for row, k in enumerate(ks):
+            s = math.sqrt(lin.w[k])
+            t = pk.obs_tgt[k]
+            if t != h:
+                A_p[2 * row:2 * row + 2, 6 * h:6 * h + 6] += s * lin.J_h[k]
+                A_p[2 * row:2 * row + 2, 6 * t:6 * t + 6] += s * lin.J_t[k]
+            A_l[2 * row:2 * row + 2] = s * lin.J_l[k]
+        cols = np.flatnonzero(np.any(A_p != 0.0, axis=0))
+        if cols.size == 0:
+            continue
+        U, sv, _ = np.linalg.svd(A_l, full_matrices=False)
+        U = U[:, sv > 1e-12 * sv.max()] if sv.max() > 0.0 else U[:, :0]
+        A = A_p[:, cols] - U @ (U.T @ A_p[:, cols])
+        H[np.ix_(cols, cols)] += A.T @ A
+    return 0.5 * (H + H.T)
+
+
+def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True,
+                    projected: bool = False) -> KeyframeSystem:
+    """The window's information over its keyframes (see :class:`KeyframeSystem`): only
+    observations made in keyframes, landmarks eliminated; the marginalisation prior, the
+    no-motion terms and (``include_scale_fix``) the scale fix of Eq. 9 over all window frames,
+    with the non-keyframe frames marginalised out of them. ``projected``: eliminate the
+    landmarks by :func:`projected_reduction` (slow, exact PSD) instead of the backend kernel."""
+    kfs = window.keyframe_ids
+    db = window.landmarks
+    # only landmarks seen in a keyframe other than their host couple poses (a host observation
+    # constrains the bearing only): the others are left out, which changes nothing but the cost
+    linked = set().union(*(db.observed_in(f) - db.hosted_by(f) for f in kfs)) if kfs else set()
+    problem = window.problem(sorted(linked), target_filter=set(kfs))
+    cost = window.cost_terms()
+    if not include_scale_fix:
+        cost.scale_fix = None
+    lin, red = cost.linearize(problem)
+    H_red = projected_reduction(problem, lin) if projected else red.H
+    (H_p, _, _), (H_s, _, _), (H_n, _, _) = cost.prior_terms(problem,
+                                                             cost.no_motion_pairs(problem))
+    idx = [problem.index[f] for f in kfs]
+    is_kf = np.zeros((len(problem.frame_ids), 6), dtype=bool)
+    is_kf[idx] = True
+    rows, others = np.flatnonzero(is_kf.ravel()), np.flatnonzero(~is_kf.ravel())
+    H_pr = H_p + H_s + H_n
+    H_priors, _ = marginalize_dense(H_pr, np.zeros(H_pr.shape[0]), rows, others)
+    sf = window.scale_fix
+    return KeyframeSystem(
+        frame_ids=tuple(kfs),
+        poses=problem.poses[idx].copy(),
+        poses_lin=problem.poses_lin[idx].copy(),
+        H_reprojection=H_red[np.ix_(rows, rows)],
+        H_priors=H_priors,
+        scale_fix_included=include_scale_fix and sf is not None,
+    )
+
+
+def scale_drift_of_system(system: KeyframeSystem) -> ScaleDriftResult:
+    """Λ and Λ_ref of a :class:`KeyframeSystem`. The chain Jacobian is evaluated at the points
+    the information was linearised at (``poses_lin``), so the window's gauge directions are
+    exactly the oldest keyframe's absolute pose; the translations of Eq. 17 are the current
+    estimates."""
+    n = len(system.frame_ids)
+    if n < MIN_KEYFRAMES:
+        return ScaleDriftResult(None, None, n, reason=f"fewer than {MIN_KEYFRAMES} keyframes")
+    H = system.H
+    if not (np.all(np.isfinite(H)) and np.all(np.isfinite(system.poses_lin))):
+        return ScaleDriftResult(None, None, n, reason="non-finite information or poses")
+    H_t = relative_translation_information(H, system.poses_lin)
+    translations = relative_poses(system.poses)[:, :3, 3]
+    value, value_ref, lam_min, lam_max, reason = indicator_from_information(H_t, translations)
+    mean_t = float(np.mean(np.linalg.norm(translations, axis=1)))
+    return ScaleDriftResult(value, value_ref, n, lam_min, lam_max, mean_t, reason)
+
+
+def scale_drift_indicator(window: SlidingWindow, include_scale_fix: bool = True
+                          ) -> ScaleDriftResult:
+    """Λ_scaledrift of the window at its current estimate (call it at the final estimate of a
+    frame: after the optimisation, the keyframe decision and outlier removal, before
+    marginalisation). When the backend's landmark elimination makes the information indefinite
+    (round-off on near-singular landmark blocks) the landmarks are eliminated again by
+    :func:`projected_reduction`. ``include_scale_fix``: whether the scale fix of Eq. 9 counts while it is
+    in the window (the reference leaves it out; see docs/backend.md for the measurement)."""
+    kfs = window.keyframe_ids
+    if len(kfs) < MIN_KEYFRAMES:
+        return ScaleDriftResult(None, None, len(kfs),
+                                reason=f"fewer than {MIN_KEYFRAMES} keyframes")
+    result = scale_drift_of_system(keyframe_system(window, include_scale_fix))
+    if result.reason.startswith("indefinite"):  # round-off of the fast landmark elimination
+        result = scale_drift_of_system(keyframe_system(window, include_scale_fix, projected=True))
+    return result
