@@ -41,7 +41,7 @@ def test_reference_file_is_the_defaults_with_our_additions_off():
                for key, value in dataclasses.asdict(getattr(ref, name)).items()
                if value != getattr(getattr(default, name), key)}
     assert changed == {("optical_flow", "retry_min_flow"), ("optical_flow", "guess_min_zncc"),
-                       ("optical_flow", "presmooth_sigma"), ("optical_flow", "local_retry_rounds"),
+                       ("optical_flow", "presmooth_sigma"),
                        ("estimator", "constant_velocity"), ("estimator", "motion_guided_tracking"),
                        ("estimator", "reinit_keeps_scale"), ("estimator", "init_max_candidates"),
                        ("estimator", "init_keep_reference"), ("estimator", "entropy_iteration"),

@@ -141,13 +141,20 @@ def _long_turn(tmp_path):
     return open_dataset(write_planar_dataset(tmp_path / "turn", ts, poses)), poses, (n_leg1, n_turn, n_leg2)
 
 
+#: With the default frontend (pre-smoothing and the local-flow retry together) a few finite
+#: landmarks survive this synthetic turn and the map is never lost (measured: 146 tracking
+#: frames, no reinit); without the local-flow retry every finite landmark leaves the view, which
+#: is the case these tests are about.
+_LOSES_THE_MAP = VoConfig.from_dict({"optical_flow": {"local_retry_rounds": 0}})
+
+
 @pytest.mark.slow
 def test_map_lost_in_a_long_turn_is_reinitialised_with_the_scale_it_had(tmp_path):
     """The long turn: the map is initialised again in the same sub-map, and its scale stays
     close to the first one (the scene keeps its distance)."""
     dataset, poses, (n_leg1, n_turn, n_leg2) = _long_turn(tmp_path)
     ts = dataset.timestamps
-    result = run_vo(dataset, VoConfig(), progress=False)
+    result = run_vo(dataset, _LOSES_THE_MAP, progress=False)
     _check_no_nan(result)
     states = [d.state for d in result.diagnostics]
     assert result.restarts == 0 and states[-1] == "tracking"
@@ -169,7 +176,8 @@ def test_reinitialisation_without_keeping_the_scale_starts_a_new_submap(tmp_path
     """reinit_keeps_scale = false (the reference's fixed initial scale): the re-initialisation
     after the long turn starts a new sub-map there, without a tracking failure."""
     dataset, _, (n_leg1, n_turn, _) = _long_turn(tmp_path)
-    config = VoConfig.from_dict({"estimator": {"reinit_keeps_scale": False}})
+    config = VoConfig.from_dict({"estimator": {"reinit_keeps_scale": False},
+                                 "optical_flow": {"local_retry_rounds": 0}})
     result = run_vo(dataset, config, progress=False)
     states = [d.state for d in result.diagnostics]
     submaps = [d.submap for d in result.diagnostics]
@@ -177,3 +185,19 @@ def test_reinitialisation_without_keeping_the_scale_starts_a_new_submap(tmp_path
     assert "lost" not in states and len(reinit) == 1 and reinit[0] >= n_leg1 + n_turn // 2
     assert submaps[: reinit[0]] == [0] * reinit[0]
     assert set(submaps[reinit[0]:]) == {1} and result.restarts == 1
+
+
+@pytest.mark.slow
+def test_default_frontend_keeps_the_map_through_the_long_turn(tmp_path):
+    """With the default frontend the same turn needs neither a restart nor a re-initialisation,
+    and the heading after the turn is right (180 degrees of yaw, within 1 degree)."""
+    dataset, poses, _ = _long_turn(tmp_path)
+    result = run_vo(dataset, VoConfig(), progress=False)
+    states = [d.state for d in result.diagnostics]
+    assert result.restarts == 0 and "lost" not in states and states[-1] == "tracking"
+    est = result.trajectory.poses
+    first = next(i for i, s in enumerate(states) if s == "tracking")
+    rel_est = np.linalg.inv(est[first][:3, :3]) @ est[-1][:3, :3]
+    rel_gt = np.linalg.inv(poses[first][:3, :3]) @ poses[-1][:3, :3]
+    err = np.degrees(np.arccos(np.clip((np.trace(rel_est.T @ rel_gt) - 1) / 2, -1, 1)))
+    assert err < 1.0, err

@@ -55,7 +55,7 @@ class OpticalFlowConfig:
             pass of a guided track starts near the track's start, so a false match found from
             a wrong prediction can pass the forward-backward check; this rejects them.
             The local-flow retry (below) applies the same test to its matches.
-        local_retry_rounds: not in the reference (0 disables, the reference; default 1). After the
+        local_retry_rounds: not in the reference (0 disables: the default and the reference). After the
             other passes, the points still not tracked are tracked again from the median
             displacement of their ``local_retry_neighbours`` nearest tracked points (forward
             from ``p + g``, back from ``p' - g``, forward-backward check and
@@ -92,7 +92,7 @@ class OpticalFlowConfig:
                                        doc="0 disables")
     guess_min_zncc: float = spec_field(0.9, -1.0, 1.0, origin="ours", reference=-1.0,
                                        doc="-1 disables; used by guided and local-flow tracking")
-    local_retry_rounds: int = spec_field(1, 0, 10, origin="ours", reference=0, doc="0 disables")
+    local_retry_rounds: int = spec_field(0, 0, 10, origin="ours", doc="0 disables (the default and the reference)")
     local_retry_neighbours: int = spec_field(8, 3, 64, origin="ours")
     fb_noise_factor: float = spec_field(0.0, 0.0, 100.0, origin="ours", doc="0 disables")
     fb_max_sq: float = spec_field(0.3, 0.0, 1e4, lo_open=True, origin="ours")

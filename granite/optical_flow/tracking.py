@@ -18,6 +18,7 @@ from numba import njit
 
 from granite.optical_flow.patch import FASTMATH as _FASTMATH
 from granite.optical_flow.noise import translation_lambda_max
+from granite.optical_flow.local_flow import local_guesses
 from granite.optical_flow.patch import in_bounds, make_template, patch_increment, patch_zncc
 
 #: Gauss-Newton stops early once a step is below 0.01 pixels on the creation level of a patch
@@ -133,12 +134,6 @@ PASS_GUESS = 1  # the caller's per-point predicted displacement
 PASS_MEDIAN = 2  # the median displacement of the points tracked so far (retry_min_flow)
 PASS_LOCAL = 3  # the median displacement of each point's nearest tracked neighbours
 
-#: A local-flow guess shorter than this (level-0 pixels) is not tried: the zero-motion pass
-#: already started within its convergence basin.
-_LOCAL_MIN_FLOW = 1.0
-#: Nor one within this distance (level-0 pixels, squared) of where the point's earlier
-#: forward attempt ended: a retry from there converges to the same place.
-_LOCAL_SAME_END_SQ = 2.0**2
 #: A local-flow retry tracks from the guess on the creation level c and this many levels above
 #: it only (the guess is within a few pixels; coarser levels cost as much as fine ones and are
 #: the ones that do not fit the points that need the retry). The reference also rejects a
@@ -269,7 +264,7 @@ def _track_points(
         if mode == PASS_GUESS and not has_guess:
             continue
         if mode == PASS_LOCAL:
-            if not _local_guesses(points, out, status, local_neighbours, local):
+            if not local_guesses(points, out, status, local_neighbours, local):
                 continue
         if mode == PASS_MEDIAN:
             # Median displacement of the earlier passes as the guess for the failed points.
@@ -362,59 +357,3 @@ def _track_points(
                 limit_sq = min(max(fb_var[lvl] * translation_lambda_max(a) / (mean * mean), fb_threshold_sq), fb_max_sq)
             status[k] = dist_sq < limit_sq
     return out, theta, status, score
-
-
-@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
-def _local_guesses(points, out, status, k_nearest, guess) -> bool:
-    """Fill ``guess`` (N, 2) for the points not tracked (``status`` False) with the per-axis
-    median displacement ``out - points`` of their ``k_nearest`` nearest tracked points (ties
-    in distance: lower index first). NaN: a tracked point, a guess shorter than
-    :data:`_LOCAL_MIN_FLOW`, or one ending within ``sqrt(_LOCAL_SAME_END_SQ)`` of the point's
-    own ``out``. Returns False when there is nothing to try (fewer than 3 tracked points, or
-    none untracked)."""
-    n = points.shape[0]
-    tracked = np.flatnonzero(status)
-    m = tracked.shape[0]
-    guess[:, :] = np.nan
-    if m < 3 or m == n or k_nearest < 1:
-        return False
-    k_use = min(k_nearest, m)
-    best_d = np.empty(k_use)
-    best_i = np.empty(k_use, dtype=np.int64)
-    dx = np.empty(k_use)
-    dy = np.empty(k_use)
-    for k in range(n):
-        if status[k]:
-            continue
-        count = 0
-        for j in range(m):
-            t = tracked[j]
-            d = (points[t, 0] - points[k, 0]) ** 2 + (points[t, 1] - points[k, 1]) ** 2
-            if count < k_use:
-                pos = count
-                count += 1
-            elif d < best_d[k_use - 1]:
-                pos = k_use - 1
-            else:
-                continue
-            # insertion into the sorted list of the nearest so far (ties: lower index first)
-            while pos > 0 and best_d[pos - 1] > d:
-                best_d[pos] = best_d[pos - 1]
-                best_i[pos] = best_i[pos - 1]
-                pos -= 1
-            best_d[pos] = d
-            best_i[pos] = t
-        for j in range(k_use):
-            t = best_i[j]
-            dx[j] = out[t, 0] - points[t, 0]
-            dy[j] = out[t, 1] - points[t, 1]
-        gx = np.median(dx)
-        gy = np.median(dy)
-        # where an earlier pass ended (its forward result) near the guessed position, a retry
-        # from there would converge to the same place
-        ex = points[k, 0] + gx - out[k, 0]
-        ey = points[k, 1] + gy - out[k, 1]
-        if gx * gx + gy * gy >= _LOCAL_MIN_FLOW * _LOCAL_MIN_FLOW and ex * ex + ey * ey >= _LOCAL_SAME_END_SQ:
-            guess[k, 0] = gx
-            guess[k, 1] = gy
-    return True
