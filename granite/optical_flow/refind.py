@@ -42,12 +42,12 @@ def _refind(buf_h, offs_h, ws_h, hs_h, buf_c, offs_c, ws_c, hs_c, host_uv, level
     data = np.empty((n_levels, p), dtype=np.float32)
     valid = np.empty((n_levels, p), dtype=np.bool_)
     jac = np.empty((n_levels, p, 3), dtype=np.float32)
-    aux = np.empty((n_levels, 4, 3), dtype=np.float32)
+    aux = np.empty((n_levels, 5, 3), dtype=np.float32)  # make_template fills 5 rows
     st_b = np.empty(n_levels, dtype=np.int8)
     data_b = np.empty((n_levels, p), dtype=np.float32)
     valid_b = np.empty((n_levels, p), dtype=np.bool_)
     jac_b = np.empty((n_levels, p, 3), dtype=np.float32)
-    aux_b = np.empty((n_levels, 4, 3), dtype=np.float32)
+    aux_b = np.empty((n_levels, 5, 3), dtype=np.float32)
     radius = 0.0
     for i in range(p):
         radius = max(radius, math.sqrt(pattern[i, 0] ** 2 + pattern[i, 1] ** 2))
