@@ -107,10 +107,12 @@ def _project(cam, p: np.ndarray) -> np.ndarray:
     return np.stack([cam.fx * x * scale + cam.cx, cam.fy * y * scale + cam.cy], -1)
 
 
-def _unproject(cam, shape: tuple[int, int], depth: np.ndarray) -> np.ndarray:
-    """Camera points (H, W, 3) at planar depth ``depth`` (sky: 1e6 m along the ray)."""
-    h, w = shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+def _unproject(cam, depth: np.ndarray, step: tuple[int, int] = (1, 1)) -> np.ndarray:
+    """Camera points at the planar depth ``depth`` (H, W) of every ``step`` = (rows, columns)
+    pixel (sky: 1e6 m along the ray); shape (ceil(H / rows), ceil(W / columns), 3)."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h:step[0], 0:w:step[1]].astype(np.float64)
+    depth = depth[:: step[0], :: step[1]]
     mx, my = (u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy
     if cam.model == "pinhole":
         ray = np.stack([mx, my, np.ones_like(mx)], -1)
@@ -135,7 +137,7 @@ def motion_blur(image: np.ndarray, depth: np.ndarray, cam, T_w_c: np.ndarray,
     if len(poses) <= 1:
         return image
     shape = depth.shape
-    p_c = _unproject(cam, shape, depth)
+    p_c = _unproject(cam, depth)
     p_w = p_c @ T_w_c[:3, :3].T + T_w_c[:3, 3]
     v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float32)
     acc = np.zeros_like(image, dtype=np.float32)
@@ -152,8 +154,7 @@ def motion_blur(image: np.ndarray, depth: np.ndarray, cam, T_w_c: np.ndarray,
 def blur_taps(depth: np.ndarray, cam, T_w_c: np.ndarray, open_close: tuple) -> int:
     """Sub-exposure images needed: one per pixel of the largest flow over the exposure."""
     h, w = depth.shape
-    sub = np.s_[:: max(1, h // 24), :: max(1, w // 32)]
-    p_c = _unproject(cam, (h, w), depth)[sub]
+    p_c = _unproject(cam, depth, (max(1, h // 24), max(1, w // 32)))
     p_w = p_c @ T_w_c[:3, :3].T + T_w_c[:3, 3]
     ends = [_project(cam, (p_w - T[:3, 3]) @ T[:3, :3]) for T in open_close]
     span = float(np.nanmax(np.linalg.norm(ends[1] - ends[0], axis=-1)))
