@@ -32,7 +32,7 @@ import numpy as np
 from numba import njit
 
 from granite.optical_flow.patch import FASTMATH as _FASTMATH
-from granite.optical_flow.patch import make_template
+from granite.optical_flow.patch import AUX_ROWS, make_template
 
 #: Median absolute value of a zero-mean Gaussian, in standard deviations.
 _MAD_GAUSS = 0.6744897501960817
@@ -139,7 +139,7 @@ def unit_noise_std(buf, off, w, h, points, pattern, margin):
     data = np.empty(p, dtype=np.float32)
     valid = np.empty(p, dtype=np.bool_)
     jac = np.empty((p, 3), dtype=np.float32)
-    aux = np.empty((5, 3), dtype=np.float32)
+    aux = np.empty((AUX_ROWS, 3), dtype=np.float32)
     for k in range(n):
         st = make_template(buf, off, w, h, points[k, 0], points[k, 1], pattern, margin, data, valid, jac, aux)
         if st <= 0:

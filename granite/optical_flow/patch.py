@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 
 _EPS = 1e-9
@@ -75,6 +76,30 @@ def interp_grad(buf, off, w, x, y):
     v_my = ddx * ddy * p0m + dx * ddy * p1m + ddx * dy * p00 + dx * dy * p10
     v_py = ddx * ddy * p01 + dx * ddy * p11 + ddx * dy * p02 + dx * dy * p12
     return value, 0.5 * (v_px - v_mx), 0.5 * (v_py - v_my)
+
+
+#: Rows of a template's ``aux`` block as :func:`make_template` fills it.
+AUX_ROWS = 5
+
+
+@njit(cache=True)
+def template_workspace(num_levels: int, num_samples: int):
+    """Empty per-level template arrays of one point, ``(st, data, valid, jac, aux)``, in the
+    shapes :func:`make_template` fills (``st`` marks a level's template as computed)."""
+    return (np.empty(num_levels, dtype=np.int8),
+            np.empty((num_levels, num_samples), dtype=np.float32),
+            np.empty((num_levels, num_samples), dtype=np.bool_),
+            np.empty((num_levels, num_samples, 3), dtype=np.float32),
+            np.empty((num_levels, AUX_ROWS, 3), dtype=np.float32))
+
+
+@njit(cache=True)
+def pattern_radius(pattern) -> float:
+    """Largest distance of a pattern sample from the patch centre (plus 1e-6)."""
+    radius = 0.0
+    for i in range(pattern.shape[0]):
+        radius = max(radius, math.sqrt(pattern[i, 0] ** 2 + pattern[i, 1] ** 2))
+    return radius + 1e-6
 
 
 @njit(cache=True, fastmath=_FASTMATH, error_model="numpy")

@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
-from granite.optical_flow.patch import FASTMATH, patch_zncc
+from granite.optical_flow.patch import FASTMATH, patch_zncc, pattern_radius, template_workspace
 from granite.optical_flow.pyramid import ImagePyramid
 from granite.optical_flow.tracking import track_point
 
@@ -38,20 +38,9 @@ def _refind(buf_h, offs_h, ws_h, hs_h, buf_c, offs_c, ws_c, hs_c, host_uv, level
     out = np.full((n, 2), np.nan)
     ok_all = np.zeros(n, dtype=np.bool_)
     zncc = np.full(n, -2.0)
-    st = np.empty(n_levels, dtype=np.int8)
-    data = np.empty((n_levels, p), dtype=np.float32)
-    valid = np.empty((n_levels, p), dtype=np.bool_)
-    jac = np.empty((n_levels, p, 3), dtype=np.float32)
-    aux = np.empty((n_levels, 5, 3), dtype=np.float32)  # make_template fills 5 rows
-    st_b = np.empty(n_levels, dtype=np.int8)
-    data_b = np.empty((n_levels, p), dtype=np.float32)
-    valid_b = np.empty((n_levels, p), dtype=np.bool_)
-    jac_b = np.empty((n_levels, p, 3), dtype=np.float32)
-    aux_b = np.empty((n_levels, 5, 3), dtype=np.float32)
-    radius = 0.0
-    for i in range(p):
-        radius = max(radius, math.sqrt(pattern[i, 0] ** 2 + pattern[i, 1] ** 2))
-    radius += 1e-6
+    st, data, valid, jac, aux = template_workspace(n_levels, p)
+    st_b, data_b, valid_b, jac_b, aux_b = template_workspace(n_levels, p)
+    radius = pattern_radius(pattern)
     for k in range(n):
         x0 = host_uv[k, 0]
         y0 = host_uv[k, 1]

@@ -19,7 +19,15 @@ from numba import njit
 from granite.optical_flow.patch import FASTMATH as _FASTMATH
 from granite.optical_flow.noise import translation_lambda_max
 from granite.optical_flow.local_flow import local_guesses
-from granite.optical_flow.patch import in_bounds, make_template, patch_increment, patch_zncc
+from granite.optical_flow.patch import (
+    AUX_ROWS,
+    in_bounds,
+    make_template,
+    patch_increment,
+    patch_zncc,
+    pattern_radius,
+    template_workspace,
+)
 
 #: Gauss-Newton stops early once a step is below 0.01 pixels on the creation level of a patch
 #: and below 0.1 pixels on coarser levels, which only need to start the next level well
@@ -123,7 +131,7 @@ def new_template_cache(num_points: int, num_levels: int, num_samples: int):
         np.empty((num_points, num_levels, num_samples), dtype=np.float32),
         np.empty((num_points, num_levels, num_samples), dtype=np.bool_),
         np.empty((num_points, num_levels, num_samples, 3), dtype=np.float32),
-        np.empty((num_points, num_levels, 5, 3), dtype=np.float32),
+        np.empty((num_points, num_levels, AUX_ROWS, 3), dtype=np.float32),
     )
 
 
@@ -248,15 +256,8 @@ def _track_points(
     status = np.zeros(n, dtype=np.bool_)
     tried = np.zeros(n, dtype=np.bool_)
     score = np.full(n, -2.0)
-    st_s = np.empty(n_levels, dtype=np.int8)
-    data_s = np.empty((n_levels, p), dtype=np.float32)
-    valid_s = np.empty((n_levels, p), dtype=np.bool_)
-    jac_s = np.empty((n_levels, p, 3), dtype=np.float32)
-    aux_s = np.empty((n_levels, 5, 3), dtype=np.float32)
-    radius = 0.0
-    for i in range(p):
-        radius = max(radius, math.sqrt(pattern[i, 0] ** 2 + pattern[i, 1] ** 2))
-    radius += 1e-6
+    st_s, data_s, valid_s, jac_s, aux_s = template_workspace(n_levels, p)
+    radius = pattern_radius(pattern)
     local = np.full((n, 2), np.nan)
     for mode in order:
         flow_x = 0.0
