@@ -4,7 +4,7 @@ Conventions: the cost is ``E = sum r^T W r`` and the normal equations are ``H dx
 ``H = J^T W J`` and ``b = J^T W r`` (no factor 1/2). Pose ``k`` owns rows ``6k:6k+6`` of the
 dense pose system, ordered ``[v, w]`` (decoupled twist of paper Eq. 14); each landmark owns a
 3x3 block over ``[s_x, s_y, d]``, eliminated by orthogonal projection of its weighted
-Jacobian rows (Householder QR, :func:`schur_reduce`).
+Jacobian rows (thin QR, :func:`schur_reduce`).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, Jb: np.ndarray, k
             Hb[i, j, c1, c2] += a0 * Jb[k, 0, c2] + a1 * Jb[k, 1, c2]
 
 
-#: A landmark column whose part orthogonal to the previous columns (Householder QR of the
+#: A landmark column whose part orthogonal to the previous columns (thin QR of the
 #: weighted landmark Jacobian) is at most this fraction of its norm is linearly dependent on
 #: them to float64 round-off (a few hundred ulps): that coordinate is unconstrained and is held
 #: (not eliminated, zero step), which gives the pseudo-inverse Schur complement. Not a setting.
@@ -32,63 +32,55 @@ DEPENDENT_COLUMN_REL = 1e-12
 
 
 @numba.njit(cache=True)
-def _landmark_qr(Al: np.ndarray, nr: int, V: np.ndarray, Q: np.ndarray,
-                 Hll_inv: np.ndarray) -> int:
+def _landmark_qr(Al: np.ndarray, nr: int, Q: np.ndarray, Hll_inv: np.ndarray,
+                 R: np.ndarray, Rinv: np.ndarray, cols: np.ndarray) -> int:
     """Thin QR of the weighted landmark Jacobian ``Al[:nr]`` (nr x 3, damping rows included)
-    by Householder reflections (``Al`` and ``V`` are overwritten). Writes ``Q[:nr, :rank]``,
-    an orthonormal basis of the column space, and ``Hll_inv`` = ``(Al^T Al)^-1`` computed as
-    ``R^-1 R^-T`` on the independent columns (zero rows and columns for a dependent one, see
-    :data:`DEPENDENT_COLUMN_REL`). Returns the rank."""
-    beta = np.zeros(3)
-    R = np.zeros((3, 3))
-    cols = np.zeros(3, dtype=np.int64)
+    by classical Gram-Schmidt with one re-orthogonalisation pass (CGS2: orthonormal to
+    round-off whatever the conditioning). Writes ``Q[:nr, :3]``, an orthonormal basis of the
+    column space in its first ``rank`` columns (the others zero), and ``Hll_inv`` =
+    ``(Al^T Al)^-1`` computed as ``R^-1 R^-T`` on the independent columns (zero rows and
+    columns for a dependent one, see :data:`DEPENDENT_COLUMN_REL`). Returns the rank.
+    ``R``, ``Rinv`` (3,3) and ``cols`` (3,) are workspaces."""
+    for c in range(3):
+        for r in range(nr):
+            Q[r, c] = 0.0
+    R[:, :] = 0.0
     p = 0
     for j in range(3):
         full = 0.0
         for r in range(nr):
-            full += Al[r, j] * Al[r, j]
-        below = 0.0
-        for r in range(p, nr):
-            below += Al[r, j] * Al[r, j]
-        norm = np.sqrt(below)
-        if full == 0.0 or norm <= DEPENDENT_COLUMN_REL * np.sqrt(full):
+            x = Al[r, j]
+            Q[r, p] = x
+            full += x * x
+        if full == 0.0:
             continue
-        alpha = -norm if Al[p, j] >= 0.0 else norm
+        for _ in range(2):
+            for a in range(p):
+                s = 0.0
+                for r in range(nr):
+                    s += Q[r, a] * Q[r, p]
+                R[a, p] += s
+                for r in range(nr):
+                    Q[r, p] -= s * Q[r, a]
+        nn = 0.0
         for r in range(nr):
-            V[r, p] = 0.0
-        V[p, p] = Al[p, j] - alpha
-        for r in range(p + 1, nr):
-            V[r, p] = Al[r, j]
-        vv = V[p, p] * V[p, p] + below - Al[p, j] * Al[p, j]
-        beta[p] = 2.0 / vv if vv > 0.0 else 0.0
-        for c in range(j, 3):
-            s = 0.0
-            for r in range(p, nr):
-                s += V[r, p] * Al[r, c]
-            s *= beta[p]
-            for r in range(p, nr):
-                Al[r, c] -= s * V[r, p]
+            nn += Q[r, p] * Q[r, p]
+        norm = np.sqrt(nn)
+        if norm <= DEPENDENT_COLUMN_REL * np.sqrt(full):
+            for a in range(p):
+                R[a, p] = 0.0
+            for r in range(nr):
+                Q[r, p] = 0.0
+            continue
+        R[p, p] = norm
+        inv_norm = 1.0 / norm
+        for r in range(nr):
+            Q[r, p] *= inv_norm
         cols[p] = j
         p += 1
     rank = p
-    # R over the independent columns (rank x rank, upper triangular): R[a, b] = Al[a, cols[b]]
-    for a in range(rank):
-        for b in range(rank):
-            R[a, b] = Al[a, cols[b]] if a <= b else 0.0
-    # Q = H_0 .. H_{rank-1} [e_0 .. e_{rank-1}]
-    for c in range(rank):
-        for r in range(nr):
-            Q[r, c] = 0.0
-        Q[c, c] = 1.0
-        for j in range(rank - 1, -1, -1):
-            s = 0.0
-            for r in range(j, nr):
-                s += V[r, j] * Q[r, c]
-            s *= beta[j]
-            for r in range(j, nr):
-                Q[r, c] -= s * V[r, j]
     # Rinv = R^-1 (upper triangular), Hll_inv = Rinv Rinv^T scattered onto the columns
-    Rinv = np.zeros((3, 3))
+    Rinv[:, :] = 0.0
     for c in range(rank - 1, -1, -1):
         Rinv[c, c] = 1.0 / R[c, c]
         for a in range(c - 1, -1, -1):
@@ -122,7 +114,7 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
     Elimination by orthogonal projection, not by inverting the 3x3 normal block: per landmark
     the weighted Jacobian rows ``[A_p | A_l]`` (``sqrt(w)`` times the 2x6 / 2x3 blocks, plus
     3 rows ``sqrt(damping + lm_lambda diag)`` in ``A_l`` and zero in ``A_p``) give the thin
-    QR ``A_l = Q R`` (Householder) and ``G = Q^T A_p``; the landmark's Schur term is
+    QR ``A_l = Q R`` (Gram-Schmidt with re-orthogonalisation) and ``G = Q^T A_p``; the landmark's Schur term is
     ``H_pl H_ll^-1 H_lp = G^T G`` and ``H_pl H_ll^-1 b_l = G^T Q^T r``. ``Q`` is orthonormal
     to round-off whatever the conditioning of ``A_l``, so ``H_raw - G^T G`` is the reduced
     system of a Jacobian within round-off of the true one (positive semi-definite up to
@@ -144,7 +136,6 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
         max_obs = max(max_obs, lm_ptr[i + 1] - lm_ptr[i])
     nr_max = 2 * max_obs + 3
     Al = np.zeros((nr_max, 3))
-    V = np.zeros((nr_max, 3))
     Q = np.zeros((nr_max, 3))
     row_obs = np.empty(max_obs, dtype=np.int64)
     slot = -np.ones(num_poses, dtype=np.int64)
@@ -156,6 +147,10 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
     wJh = np.zeros((2, 6))
     wJt = np.zeros((2, 6))
     inv = np.zeros((3, 3))
+    qr_R = np.zeros((3, 3))
+    qr_Rinv = np.zeros((3, 3))
+    qr_cols = np.zeros(3, dtype=np.int64)
+    sqw = np.empty(max_obs)
     for i in range(m):
         h = lm_host[i]
         ns = 0
@@ -171,6 +166,7 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
                 for c in range(3):
                     Al[2 * no + a, c] = sk * J_l[k, a, c]
             row_obs[no] = k
+            sqw[no] = sk
             no += 1
             for c1 in range(3):
                 bli[c1] += wk * (J_l[k, 0, c1] * r[k, 0] + J_l[k, 1, c1] * r[k, 1])
@@ -207,41 +203,38 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
             for c2 in range(3):
                 Al[2 * no + c, c2] = 0.0
             Al[2 * no + c, c] = np.sqrt(damping + lm_lambda * diag[c])
-        rank = _landmark_qr(Al, nr, V, Q, inv)
+        rank = _landmark_qr(Al, nr, Q, inv, qr_R, qr_Rinv, qr_cols)
         Hll_inv[i, :, :] = inv
         if ns == 0 or rank == 0:
             for a in range(ns):
                 slot[slot_pose[a]] = -1
             continue
-        # G_slot = Q^T A_p[:, slot] and Q^T r over the observation rows (damping rows: A_p = 0)
+        # G_slot = Q^T A_p[:, slot] and Q^T r over the observation rows (damping rows: A_p = 0;
+        # the columns of Q beyond the rank are zero)
         for a in range(ns):
-            for q in range(rank):
+            for q in range(3):
                 for c in range(6):
                     G[a, q, c] = 0.0
-        for q in range(rank):
-            qr_[q] = 0.0
+        qr_[:] = 0.0
+        sh = slot[h]
         for o in range(no):
             k = row_obs[o]
-            sk = np.sqrt(w[k])
-            for q in range(rank):
+            sk = sqw[o]
+            t = obs_tgt[k]
+            st = slot[t]
+            for q in range(3):
                 q0 = Q[2 * o, q] * sk
                 q1 = Q[2 * o + 1, q] * sk
                 qr_[q] += q0 * r[k, 0] + q1 * r[k, 1]
-                t = obs_tgt[k]
                 if t == h:
                     continue
-                sh = slot[h]
-                st = slot[t]
                 for c in range(6):
                     G[sh, q, c] += q0 * J_h[k, 0, c] + q1 * J_h[k, 1, c]
                     G[st, q, c] += q0 * J_t[k, 0, c] + q1 * J_t[k, 1, c]
         for a in range(ns):
             oa = 6 * slot_pose[a]
             for c1 in range(6):
-                s = 0.0
-                for q in range(rank):
-                    s += G[a, q, c1] * qr_[q]
-                sb[oa + c1] += s
+                sb[oa + c1] += G[a, 0, c1] * qr_[0] + G[a, 1, c1] * qr_[1] + G[a, 2, c1] * qr_[2]
         for a in range(ns):
             pa = slot_pose[a]
             for c in range(ns):
@@ -249,11 +242,11 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
                 if pa > pc:
                     continue
                 for c1 in range(6):
+                    x0 = G[a, 0, c1]
+                    x1 = G[a, 1, c1]
+                    x2 = G[a, 2, c1]
                     for c2 in range(6):
-                        s = 0.0
-                        for q in range(rank):
-                            s += G[a, q, c1] * G[c, q, c2]
-                        Sb[pa, pc, c1, c2] += s
+                        Sb[pa, pc, c1, c2] += x0 * G[c, 0, c2] + x1 * G[c, 1, c2] + x2 * G[c, 2, c2]
         for a in range(ns):
             slot[slot_pose[a]] = -1
     H = np.empty((n6, n6))
