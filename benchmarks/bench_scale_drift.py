@@ -167,7 +167,7 @@ def _plot(path: Path, t, height, series, rate, lam, t0) -> None:
 
 def cost(dataset_path: str) -> dict:
     """Per-frame time of the indicator inside the VO (in-process run of the dataset): the whole
-    call (with the projected fallback where it is taken), and separately the keyframe system
+    call, and separately the keyframe system
     (linearisation of the keyframe observations, landmark elimination) and the chain part
     (reparametrisation, Schur complements, eigen-solver) of the fast path."""
     import granite.estimator.vo as vo_module
