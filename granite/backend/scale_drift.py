@@ -39,6 +39,7 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.linalg
 
 from granite.backend.hessian import marginalize_dense
 from granite.geometry import hat
@@ -171,8 +172,33 @@ def relative_translation_information(H: np.ndarray, poses: np.ndarray) -> np.nda
     is_keep[1:, :3] = True  # relative translations; the oldest pose and all rotations go
     keep = np.flatnonzero(is_keep.ravel())
     marg = np.flatnonzero(~is_keep.ravel())
-    H_t, _ = marginalize_dense(0.5 * (H_rel + H_rel.T), np.zeros(6 * n), keep, marg)
-    return H_t
+    return _schur_complement(0.5 * (H_rel + H_rel.T), keep, marg)
+
+
+#: The Cholesky path of :func:`_schur_complement` is taken when the Jacobi-scaled block to
+#: eliminate has all squared pivots above this (its condition number is below about 1e12, the
+#: rank cut-off of ``hessian._generalized_inverse``); otherwise the generalised inverse.
+_CHOLESKY_MIN_PIVOT2 = 1e-12
+
+
+def _schur_complement(H: np.ndarray, keep: np.ndarray, marg: np.ndarray) -> np.ndarray:
+    """``H_kk - H_km H_mm^-1 H_mk`` by a Jacobi-scaled Cholesky factorisation of ``H_mm``
+    (a tenth of the eigen-decomposition's cost); :func:`marginalize_dense` (generalised inverse)
+    when ``H_mm`` is singular or nearly so."""
+    H_mm = H[np.ix_(marg, marg)]
+    d = np.diag(H_mm)
+    if marg.size and np.all(d > 0.0):
+        sc = 1.0 / np.sqrt(d)
+        try:
+            L = np.linalg.cholesky(H_mm * sc[:, None] * sc[None, :])
+        except np.linalg.LinAlgError:
+            L = None
+        if L is not None and np.min(np.diag(L)) ** 2 > _CHOLESKY_MIN_PIVOT2:
+            X = scipy.linalg.solve_triangular(L, sc[:, None] * H[np.ix_(marg, keep)],
+                                              lower=True, check_finite=False)
+            out = H[np.ix_(keep, keep)] - X.T @ X
+            return 0.5 * (out + out.T)
+    return marginalize_dense(H, np.zeros(H.shape[0]), keep, marg)[0]
 
 
 def indicator_from_information(H_t: np.ndarray, translations: np.ndarray
@@ -211,11 +237,10 @@ def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True) -> Ke
     no-motion terms and (``include_scale_fix``) the scale fix of Eq. 9 over all window frames,
     with the non-keyframe frames marginalised out of them."""
     kfs = window.keyframe_ids
-    db = window.landmarks
-    # only landmarks seen in a keyframe other than their host couple poses (a host observation
-    # constrains the bearing only): the others are left out, which changes nothing but the cost
-    linked = set().union(*(db.observed_in(f) - db.hosted_by(f) for f in kfs)) if kfs else set()
-    problem = window.problem(sorted(linked), target_filter=set(kfs))
+    # every landmark with its observations made in keyframes; one seen in its host only
+    # contributes nothing after its elimination (the kernel skips it cheaply, cheaper than
+    # selecting the landmarks seen in a second keyframe beforehand)
+    problem = window.problem(None, target_filter=set(kfs))
     cost = window.cost_terms()
     if not include_scale_fix:
         cost.scale_fix = None
@@ -228,7 +253,10 @@ def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True) -> Ke
     is_kf[idx] = True
     rows, others = np.flatnonzero(is_kf.ravel()), np.flatnonzero(~is_kf.ravel())
     H_pr = H_p + H_s + H_n
-    H_priors, _ = marginalize_dense(H_pr, np.zeros(H_pr.shape[0]), rows, others)
+    if np.any(H_pr[others]):
+        H_priors, _ = marginalize_dense(H_pr, np.zeros(H_pr.shape[0]), rows, others)
+    else:  # no pose term on a non-keyframe: nothing to marginalise
+        H_priors = H_pr[np.ix_(rows, rows)]
     sf = window.scale_fix
     return KeyframeSystem(
         frame_ids=tuple(kfs),
