@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -56,7 +57,8 @@ def test_local_cluster_equals_serial(serial_results, tmp_path, capsys):
     assert main(["bench", str(SMOKE), "--out", str(out), "--workers", "2",
                  "--dashboard-address", "127.0.0.1:0"]) == 0
     printed = capsys.readouterr().out
-    assert "local cluster: 2 worker processes on 127.0.0.1; dashboard http://127.0.0.1:" in printed
+    assert "local cluster tcp://127.0.0.1:" in printed
+    assert "2 worker processes on 127.0.0.1; dashboard http://127.0.0.1:" in printed
     assert "[9/9" in printed
     assert read_results(out / "results.csv", timing=False) == serial_results
     _check_outputs(out)
@@ -64,6 +66,14 @@ def test_local_cluster_equals_serial(serial_results, tmp_path, capsys):
     assert main(["bench", str(SMOKE), "--out", str(out), "--serial"]) == 0
     assert "0 tasks to run (finished and kept: 4 vo, 4 evaluate)" in capsys.readouterr().out
     assert read_results(out / "results.csv", timing=False) == serial_results
+
+
+def test_local_cluster_listens_on_loopback_only():
+    from granite.bench.execute import local_cluster
+
+    with local_cluster(1, "127.0.0.1:0") as cluster:
+        addresses = [cluster.scheduler_address, *(w.worker_address for w in cluster.workers.values())]
+        assert all(a.startswith("tcp://127.0.0.1:") for a in addresses), addresses
 
 
 def _start(args: list[str], **kw) -> subprocess.Popen:
@@ -82,29 +92,42 @@ def _stop(proc: subprocess.Popen) -> None:
 
 
 class Cluster:
-    """``dask scheduler`` and ``dask worker`` subprocesses on 127.0.0.1 (random ports)."""
+    """``dask scheduler`` and ``dask worker`` subprocesses on 127.0.0.1 (random ports);
+    ``tls``: the --tls-* options of all of them (the protocol is then tls)."""
 
-    def __init__(self, folder: Path, workers: list[str]):
+    def __init__(self, folder: Path, workers: list[str], tls: list[str] | None = None):
         self.file = folder / "scheduler.json"
+        tls = tls or []
         self.procs = [_start(["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0",
-                              "--no-dashboard", "--scheduler-file", str(self.file)])]
+                              "--no-dashboard", "--scheduler-file", str(self.file), *tls,
+                              *(["--protocol", "tls"] if tls else [])])]
         deadline = time.monotonic() + 60
         while not self.file.is_file() and time.monotonic() < deadline:
             time.sleep(0.2)
         assert self.file.is_file(), "the scheduler did not start"
         time.sleep(0.3)
         self.address = json.loads(self.file.read_text())["address"]
-        assert self.address.startswith("tcp://127.0.0.1:")
+        assert self.address.startswith(("tls" if tls else "tcp") + "://127.0.0.1:")
         self.workers = {}
         for name in workers:
             self.workers[name] = _start(["distributed.cli.dask_worker", self.address, "--name", name,
                                          "--nworkers", "1", "--nthreads", "1", "--host", "127.0.0.1",
-                                         "--no-dashboard"])
+                                         "--no-dashboard", *tls])
             self.procs.append(self.workers[name])
         from distributed import Client
 
-        with Client(self.address, timeout="30s") as client:
+        with Client(self.address, timeout="30s", security=self.security(tls)) as client:
             client.wait_for_workers(len(workers), timeout=60)
+
+    @staticmethod
+    def security(tls: list[str]):
+        if not tls:
+            return None
+        from distributed.security import Security
+
+        opts = dict(zip(tls[::2], tls[1::2]))
+        return Security(tls_ca_file=opts["--tls-ca-file"], tls_client_cert=opts["--tls-cert"],
+                        tls_client_key=opts["--tls-key"], require_encryption=True)
 
     def close(self) -> None:
         for proc in reversed(self.procs):
@@ -115,8 +138,8 @@ class Cluster:
 def cluster_factory(tmp_path):
     made = []
 
-    def make(workers):
-        made.append(Cluster(tmp_path, workers))
+    def make(workers, tls=None):
+        made.append(Cluster(tmp_path, workers, tls))
         return made[-1]
 
     yield make
@@ -131,6 +154,40 @@ def test_scheduler_and_worker_subprocesses(serial_results, cluster_factory, tmp_
     assert f"scheduler {cluster.address}: 1 workers" in capsys.readouterr().out
     assert read_results(out / "results.csv", timing=False) == serial_results
     _check_outputs(out)
+
+
+def _certificates(folder: Path) -> list[str]:
+    """A CA and one certificate signed by it (the docs/bench.md commands)."""
+    def openssl(*args):
+        subprocess.run(["openssl", *args], cwd=folder, check=True, capture_output=True)
+
+    openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=test CA",
+            "-keyout", "ca.key", "-out", "ca.pem")
+    openssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=granite-bench", "-keyout", "node.key",
+            "-out", "node.csr")
+    openssl("x509", "-req", "-in", "node.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+            "-days", "2", "-out", "node.pem")
+    return ["--tls-ca-file", str(folder / "ca.pem"), "--tls-cert", str(folder / "node.pem"),
+            "--tls-key", str(folder / "node.key")]
+
+
+def test_tls_cluster(serial_results, cluster_factory, tmp_path, capsys):
+    if shutil.which("openssl") is None:
+        pytest.skip("needs the openssl command")
+    tls = _certificates(tmp_path)
+    cluster = cluster_factory(["w0"], tls)
+    out = tmp_path / "study"
+    # without a client certificate the scheduler cannot be reached
+    assert main(["bench", str(SMOKE), "--out", str(out), "--scheduler", cluster.address]) == 2
+    assert "needs --tls-ca-file" in capsys.readouterr().err
+    plain = cluster.address.replace("tls://", "tcp://")
+    import dask
+
+    with dask.config.set({"distributed.comm.timeouts.connect": "3s"}):
+        assert main(["bench", str(SMOKE), "--out", str(out), "--scheduler", plain]) == 2
+    assert "cannot connect to the scheduler" in capsys.readouterr().err
+    assert main(["bench", str(SMOKE), "--out", str(out), "--scheduler", cluster.address, *tls]) == 0
+    assert read_results(out / "results.csv", timing=False) == serial_results
 
 
 def test_killed_worker_mid_study(serial_results, cluster_factory, tmp_path):

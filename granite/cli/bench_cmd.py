@@ -72,8 +72,41 @@ def _security(args):
                     tls_client_key=str(args.tls_key), require_encryption=True)
 
 
+def execute(study, out: Path, scheduler: str | None = None, workers: int | None = None, serial: bool = False,
+            dashboard_address: str = "127.0.0.1:8787", security=None):
+    """Run a validated study: serially, on the scheduler at ``scheduler``, or on a LocalCluster
+    of ``workers`` processes (default: one per core). Returns (rows, failed tasks)."""
+    from granite.bench.execute import local_cluster, run_study
+
+    if serial:
+        return run_study(study, out)
+    from distributed import Client
+
+    if scheduler:
+        cluster = None
+        if scheduler.startswith("tls://") and security is None:
+            raise ConfigError(f"{scheduler}: a tls:// scheduler needs --tls-ca-file, --tls-cert and --tls-key")
+        try:
+            client = Client(scheduler, security=security)  # timeout: distributed.comm.timeouts.connect
+        except (OSError, TimeoutError, ValueError, TypeError) as error:
+            raise ConfigError(f"cannot connect to the scheduler {scheduler}: {error}") from None
+        print(f"scheduler {scheduler}: {len(client.scheduler_info().get('workers', {}))} workers; "
+              f"dashboard {client.dashboard_link}", flush=True)
+    else:
+        cluster = local_cluster(workers, dashboard_address)
+        client = Client(cluster)
+        print(f"local cluster {cluster.scheduler_address}: {len(cluster.workers)} worker processes "
+              f"on 127.0.0.1; dashboard {client.dashboard_link}", flush=True)
+    try:
+        return run_study(study, out, client)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
 def run(args) -> int:
-    from granite.bench.execute import local_cluster, plan_study, run_study
+    from granite.bench.execute import plan_study
     from granite.bench.study import check_existing_sequences, load_study
     from granite.io import check_writable
 
@@ -88,29 +121,10 @@ def run(args) -> int:
               f"(finished and kept: {plan.kept})")
         for task in plan.tasks:
             after = f"  after {', '.join(d.rsplit('-', 1)[0] for d in task.deps)}" if task.deps else ""
-            print(f"  {task.kind:<8} {task.what}{after if task.kind != 'vo' else ''}")
+            print(f"  {task.kind:<8} {task.what}{after}")
         return 0
-    if args.serial:
-        rows, failed = run_study(study, args.out)
-    else:
-        from distributed import Client
-
-        if args.scheduler:
-            cluster = None
-            client = Client(args.scheduler, security=security, timeout="30s")
-            print(f"scheduler {args.scheduler}: {len(client.scheduler_info().get('workers', {}))} workers; "
-                  f"dashboard {client.dashboard_link}", flush=True)
-        else:
-            cluster = local_cluster(args.workers, args.dashboard_address)
-            client = Client(cluster)
-            print(f"local cluster: {len(cluster.workers)} worker processes on 127.0.0.1; "
-                  f"dashboard {client.dashboard_link}", flush=True)
-        try:
-            rows, failed = run_study(study, args.out, client)
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
+    rows, failed = execute(study, args.out, args.scheduler, args.workers, args.serial,
+                           args.dashboard_address, security)
     ok = sum(1 for r in rows if r.get("status") == "ok")
     print(f"{ok} of {len(rows)} runs evaluated; results: {args.out / 'results.csv'}, "
           f"report: {args.out / 'report.md'}")
