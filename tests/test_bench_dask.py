@@ -266,3 +266,13 @@ name = "ours"
     study_file.write_text(study_file.read_text().replace("samples = 1", "samples = 2"))
     assert main(["bench", str(study_file), "--out", str(out), "--serial"]) == 2
     assert "holds a render of a different scenario" in capsys.readouterr().err
+
+
+def test_bench_vo_wrapper(tmp_path):
+    """benchmarks/bench_vo.py keeps its options; it runs them as a study."""
+    proc = subprocess.run([sys.executable, "benchmarks/bench_vo.py", "--datasets", "assets/sequences/aggressive",
+                           "--config", "configs/reference.toml", "--data", str(tmp_path), "--serial"],
+                          cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "| aggressive (all) | reference | 1 | 57.6 | 0.378 | 0.67 % |" in proc.stdout
+    assert (tmp_path / "bench_vo.json").is_file() and (tmp_path / "report.md").is_file()

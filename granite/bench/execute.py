@@ -197,7 +197,10 @@ def local_cluster(workers: int | None, dashboard_address: str = "127.0.0.1:8787"
 def run_study(study: Study, out: Path, client=None, stream=None) -> tuple[list[dict], list[Task]]:
     """Plan, execute (``client``: a Dask client, or None for serial in this process) and
     aggregate. Returns (rows in table order, failed tasks)."""
+    from granite.bench.study import check_existing_sequences
+
     out = Path(out)
+    check_existing_sequences(study, out)
     out.mkdir(parents=True, exist_ok=True)
     stream = stream or sys.stdout
     _prepare_outputs(study, out)

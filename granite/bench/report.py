@@ -130,6 +130,7 @@ def _save(fig, path: Path) -> None:
 def plot_metrics(study: Study, rows: list[dict], path: Path) -> None:
     """Failures, RMS RPE and ATE / path per variant: one dot per sequence, bar = mean (total)."""
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     names = [v.name for v in study.variants]
     metrics = (("restarts", "failures (restarts), total", 1.0, sum),
@@ -144,6 +145,8 @@ def plot_metrics(study: Study, rows: list[dict], path: Path) -> None:
                 ax.bar(i, agg(vals), color="#9ecae1", width=0.6)
                 ax.plot([i] * len(vals), vals, "o", color="#08519c", ms=4)
         ax.set_xticks(range(len(names)), names, rotation=20)
+        if key == "restarts":
+            ax.yaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_title(title, fontsize=10)
         ax.grid(axis="y", alpha=0.3)
     _save(fig, path)
@@ -151,6 +154,7 @@ def plot_metrics(study: Study, rows: list[dict], path: Path) -> None:
 
 def plot_trajectories(study: Study, out: Path, seq, path: Path) -> bool:
     """Top view of the ground truth and every variant's estimate (aligned per sub-map)."""
+    import numpy as np
     from matplotlib.figure import Figure
 
     from granite.errors import GraniteError
@@ -168,8 +172,12 @@ def plot_trajectories(study: Study, out: Path, seq, path: Path) -> bool:
             aligned = ate(est, gt, study.align).aligned
         except (GraniteError, ValueError, OSError):
             continue
-        p = aligned.positions
-        ax.plot(p[:, 0], p[:, 1], lw=1.2, color=f"C{k}", label=variant.name)
+        p, ids = aligned.positions, aligned.submap_ids()
+        starts = [0, *(np.flatnonzero(np.diff(ids)) + 1), len(ids)]
+        for j, (a, b) in enumerate(zip(starts[:-1], starts[1:])):  # one line per sub-map
+            ax.plot(p[a:b, 0], p[a:b, 1], lw=1.2, color=f"C{k}",
+                    label=variant.name + (f" ({len(starts) - 1} sub-maps)" if len(starts) > 2 else "")
+                    if j == 0 else None)
         lo, hi = min(lo, est.timestamps[0]), max(hi, est.timestamps[-1])
         drawn = True
     if not drawn:
