@@ -106,6 +106,9 @@ class Progress:
         s = int(time.monotonic() - self.t0)
         stamp = f"[{self.done:>{len(str(self.total))}}/{self.total} {s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}]"
         text = f"FAILED: {task.what}: {type(error).__name__}: {error}" if error else _describe(task, result, None)
+        text = text.splitlines()[0] if text else text
+        if len(text) > 240:
+            text = text[:237] + "..."
         print(f"{stamp} {task.kind:<8} {text}", file=self.stream, flush=True)
 
 
@@ -215,10 +218,9 @@ def run_study(study: Study, out: Path, client=None, stream=None) -> tuple[list[d
     else:
         rows, bad = run_dask(plan, client, progress)
     rows = list(plan.rows.values()) + rows
-    agg = report.aggregate if client is None else None
     t0 = time.perf_counter()
-    if agg is not None:
-        result = agg(out, study, rows)
+    if client is None:
+        result = report.aggregate(out, study, rows)
     else:
         result = client.submit(report.aggregate, out, study, rows, key=f"aggregate-{uuid.uuid4().hex[:8]}",
                                pure=False).result()
