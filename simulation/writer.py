@@ -118,9 +118,15 @@ class RunWriter:
                 f"{self.out}: holds a run of a different scenario or options "
                 f"(fingerprint {old.get('fingerprint')} != {self.fingerprint}); "
                 "use another --out folder")
-        for frame in old.get("frames", []):
+        self._merge_frames(old)
+
+    def _merge_frames(self, manifest: dict) -> None:
+        """Render times and sensor figures of the frames of ``manifest`` this writer has not
+        rendered itself (earlier runs, or other processes rendering other frames of the folder)."""
+        for frame in manifest.get("frames", []):
             i, sec = frame.get("index"), frame.get("render_seconds")
-            if isinstance(i, int) and sec is not None and 0 <= i < len(self.plan.times):
+            if (isinstance(i, int) and sec is not None and 0 <= i < len(self.plan.times)
+                    and i not in self.render_seconds):
                 self.render_seconds[i] = float(sec)
                 if isinstance(frame.get("sensor"), dict):
                     self.sensor_info[i] = frame["sensor"]
@@ -175,7 +181,15 @@ class RunWriter:
         self.write_manifest()
 
     def write_manifest(self) -> None:
+        """The manifest, merged with the one on disk: several processes may render disjoint
+        frame ranges into one folder (``granite bench``), each keeping the others' frames."""
         s, plan = self.scenario, self.plan
+        try:
+            current = json.loads((self.out / "manifest.json").read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError):
+            current = {}
+        if current.get("fingerprint") == self.fingerprint:
+            self._merge_frames(current)
         frames = [{
             "index": i,
             "timestamp_ns": int(plan.timestamps_ns[i]),

@@ -262,6 +262,18 @@ name = "ours"
     printed = capsys.readouterr().out
     assert "frames 0:2" in printed and "frames 2:4" not in printed
     assert images[0].read_bytes() == first
+    # the same study on 2 workers (ranges rendered concurrently into one folder): the same frames
+    out2 = tmp_path / "out2"
+    assert main(["bench", str(study_file), "--out", str(out2), "--workers", "2",
+                 "--dashboard-address", "127.0.0.1:0"]) == 0
+    seq2 = out2 / "sequences" / seq.name
+    for name in ("mav0/cam0/data", "mav0/depth0/data"):
+        files = sorted(p.name for p in (seq / name).iterdir())
+        assert files == sorted(p.name for p in (seq2 / name).iterdir())
+        assert all((seq / name / f).read_bytes() == (seq2 / name / f).read_bytes() for f in files)
+    manifest = json.loads((seq2 / "manifest.json").read_text())
+    assert all(f["render_seconds"] is not None for f in manifest["frames"][:4])
+    assert read_results(out2 / "results.csv", timing=False) == read_results(out / "results.csv", timing=False)
     # a changed study does not overwrite the old render
     study_file.write_text(study_file.read_text().replace("samples = 1", "samples = 2"))
     assert main(["bench", str(study_file), "--out", str(out), "--serial"]) == 2
