@@ -26,6 +26,7 @@ rendering (e.g. assets/sequences/*). The same as a study file: studies/paper_tab
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -126,7 +127,7 @@ def main() -> int:
             for s in study.sequences:
                 if s not in keep:
                     print(f"{s.label}: not rendered, skipped")
-            study = type(study)(**{**study.__dict__, "sequences": keep})
+            study = dataclasses.replace(study, sequences=keep)
             if not keep:
                 return 0
         rows, failed = execute(study, args.data, args.scheduler, args.workers, args.serial)
