@@ -202,7 +202,7 @@ def run_study(study: Study, out: Path, client=None, stream=None) -> tuple[list[d
     aggregate. Returns (rows in table order, failed tasks)."""
     from granite.bench.study import check_existing_sequences
 
-    out = Path(out)
+    out = Path(out).resolve()  # the tasks run elsewhere: absolute paths
     check_existing_sequences(study, out)
     out.mkdir(parents=True, exist_ok=True)
     stream = stream or sys.stdout
