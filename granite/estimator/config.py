@@ -38,6 +38,7 @@ from granite.config_schema import (
     has_limits,
     limits,
     spec_field,
+    toml_value,
     validate_instance,
 )
 from granite.errors import ConfigError
@@ -295,15 +296,5 @@ class VoConfig:
         for f in dataclasses.fields(self):
             lines.append(f"\n[{f.name}]")
             for key, value in dataclasses.asdict(getattr(self, f.name)).items():
-                lines.append(f"{key} = {_toml_value(value)}")
+                lines.append(f"{key} = {toml_value(value)}")
         return "\n".join(lines) + "\n"
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    raise TypeError(f"cannot write {value!r} as TOML")
