@@ -81,6 +81,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     viz.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save a rerun recording")
     viz.add_argument("--spawn", action="store_true", help="stream live to a rerun viewer (needs a display)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--sequential", action="store_true",
+                   help="one frame after the other on one thread (debugging; the default runs the "
+                        "frontend of the next frame concurrently, with bit-identical results)")
     return p
 
 
@@ -107,7 +110,7 @@ def load_config(args) -> VoConfig:
 def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None, spawn: bool = False,
                 delta: float = DEFAULT_RPE_DELTA, max_frames: int | None = None, progress: bool = True,
                 formats: tuple[str, ...] = ("tum",), config_label: str = "", report: bool = True,
-                notify=None):
+                notify=None, concurrent: bool = True):
     """Run the VO on an opened dataset and write the run folder (with plots and ``report.md``
     when ``report``). Returns (result, evaluation dict or None); a failed evaluation leaves
     ``result.evaluation_error`` set and no ``evaluation.json``."""
@@ -125,7 +128,8 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
         if view is not None:
             view.log_frame(record, frame.image, output.diagnostics, frame.path)
 
-    result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames, notify=notify)
+    result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames, notify=notify,
+                    concurrent=concurrent)
     evaluation = None
     if dataset.ground_truth is not None:
         try:
@@ -216,7 +220,8 @@ def run(args) -> int:
     dataset = open_dataset(args.dataset, calib_path=args.calib)
     result, evaluation = perform_run(dataset, config, args.out, args.rerun, args.spawn, args.delta,
                                      args.max_frames, progress=not args.quiet, formats=(args.format,),
-                                     config_label=config_name(args), notify=cli_notifier("run"))
+                                     config_label=config_name(args), notify=cli_notifier("run"),
+                                     concurrent=not args.sequential)
     for line in summary_lines(result, evaluation, args.delta):
         print(line)
     print(f"outputs: {args.out} (report: {args.out / 'report.md'})")

@@ -215,15 +215,28 @@ class MonocularVO:
         return negative_entropy, inserted
 
     # ----------------------------------------------------------------------------- main
+    def predict_tracks(self, timestamp: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The frontend's guesses for a frame at ``timestamp`` (motion-guided tracking): the
+        only data that flows from the estimator back into the frontend."""
+        if not self.config.estimator.motion_guided_tracking:
+            return None
+        return predicted_track_positions(self.motion, self.flow, self.window, self.camera, timestamp)
+
     def process(self, frame_id: int, timestamp: float, image: np.ndarray | None) -> FrameOutput:
         """Process one frame; ``image`` None marks a missing or corrupt image (skipped)."""
         start = time.perf_counter()
-        est = self.config.estimator
         if image is None:
             return self._skipped(timestamp, frame_id, None, None)
-        predicted = predicted_track_positions(self.motion, self.flow, self.window, self.camera,
-                                              timestamp) if est.motion_guided_tracking else None
-        tracks = self.flow.process(timestamp, image, predicted=predicted)
+        tracks = self.flow.process(timestamp, image, predicted=self.predict_tracks(timestamp))
+        return self.finish(self.estimate(frame_id, timestamp, image, tracks, start))
+
+    def estimate(self, frame_id: int, timestamp: float, image: np.ndarray,
+                 tracks: OpticalFlowResult, start: float):
+        """The estimator's part of :meth:`process` given the frame's tracks, up to the state
+        the next frame's :meth:`predict_tracks` reads (optimisation, keyframes, restart,
+        marginalisation, motion model). Returns what :meth:`finish` needs, or the finished
+        :class:`FrameOutput` of a skipped frame."""
+        est = self.config.estimator
         if tracks.rejected is not None:  # blank / wrong size: the frontend kept its last frame
             return self._skipped(timestamp, frame_id, tracks, start)
         self._tracks[frame_id] = FrameTracks.from_result(tracks)
@@ -278,7 +291,18 @@ class MonocularVO:
             self.motion.update(T_w_c, timestamp, measure_motion=self._previous_frame is not None
                                and self.state is MapState.MAPPED)
             self._previous_frame = frame_id
+        return (start, timestamp, frame_id, tracks, status, submap, finite, infinite, keyframe_taken,
+                negative_entropy, drift, T_w_c)
 
+    def finish(self, estimated) -> FrameOutput:
+        """The rest of :meth:`process` after :meth:`estimate`: the frame's outputs. Reads the
+        window, changes nothing that the next frame's tracking depends on (so the next frame's
+        tracking may run meanwhile)."""
+        if isinstance(estimated, FrameOutput):
+            return estimated
+        (start, timestamp, frame_id, tracks, status, submap, finite, infinite, keyframe_taken,
+         negative_entropy, drift, T_w_c) = estimated
+        est, win = self.config.estimator, self.window
         inv = win.landmarks.inverse_distances(tracks.ids)
         if status in (FrameStatus.TRACKING, FrameStatus.REINIT):
             seen = inv[inv > 0.0]
