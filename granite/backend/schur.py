@@ -13,7 +13,7 @@ import numpy as np
 import scipy.linalg
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _spd_inverse3(A: np.ndarray, out: np.ndarray) -> None:
     """Inverse of a symmetric positive semi-definite 3x3 via LDL^T; directions with a pivot
     ``<= 1e-15 * max diag`` are treated as unconstrained (their inverse is set to 0). The
@@ -51,7 +51,7 @@ def _spd_inverse3(A: np.ndarray, out: np.ndarray) -> None:
             out[i, j] = s
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, Jb: np.ndarray, k: int) -> None:
     """``Hb[i, j] += wJa^T Jb[k]`` for 2x6 Jacobians (block layout (K,K,6,6))."""
     for c1 in range(6):
@@ -61,7 +61,7 @@ def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, Jb: np.ndarray, k
             Hb[i, j, c1, c2] += a0 * Jb[k, 0, c2] + a1 * Jb[k, 1, c2]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tgt: np.ndarray,
                  r: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_t: np.ndarray,
                  J_l: np.ndarray, damping: float, lm_lambda: float):
@@ -183,7 +183,7 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
     return H, b, Hr, b - sb, Hll_inv, b_l
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def back_substitute(dx: np.ndarray, lm_ptr: np.ndarray, lm_host: np.ndarray,
                     obs_tgt: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_t: np.ndarray,
                     J_l: np.ndarray, Hll_inv: np.ndarray, b_l: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ from pathlib import Path
 from granite.cli.eval_cmd import positive_seconds
 from granite.errors import GraniteError
 from granite.estimator.config import VoConfig
-from granite.estimator.records import FrameRecord, write_records
+from granite.estimator.records import FrameRecord, RecordWriter, write_records
 from granite.estimator.runner import TRAJECTORY_FORMATS, RunResult, run_vo, summary_dict, write_run
 from granite.evaluation import DEFAULT_RPE_DELTA, evaluate
 from granite.evaluation.initialization import initialization_delay
@@ -114,7 +114,7 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
     """Run the VO on an opened dataset and write the run folder (with plots and ``report.md``
     when ``report``). Returns (result, evaluation dict or None); a failed evaluation leaves
     ``result.evaluation_error`` set and no ``evaluation.json``."""
-    records: list[FrameRecord] = []
+    records: list[RecordWriter] = []  # landmarks.npz, streamed to disk: memory flat in the run's length
     view = None
     if rerun or spawn:
         from granite.visualization.run_view import RunView
@@ -124,12 +124,19 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
 
     def on_frame(frame, output):
         record = FrameRecord.from_output(frame.index, frame.timestamp, output)
-        records.append(record)
+        if not records:
+            records.append(RecordWriter(out / "landmarks.npz"))
+        records[0].append(record)
         if view is not None:
             view.log_frame(record, frame.image, output.diagnostics, frame.path)
 
-    result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames, notify=notify,
-                    concurrent=concurrent)
+    try:
+        result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames,
+                        notify=notify, concurrent=concurrent)
+    except BaseException:
+        for writer in records:
+            writer.discard()
+        raise
     evaluation = None
     if dataset.ground_truth is not None:
         try:
@@ -146,7 +153,10 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
     (out / "evaluation.json").unlink(missing_ok=True)
     if evaluation is not None:
         atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=2, allow_nan=False) + "\n")
-    write_records(out / "landmarks.npz", records)
+    if records:
+        records[0].close()
+    else:
+        write_records(out / "landmarks.npz", [])
     if report:
         write_run_report(out, result, dataset, evaluation, delta, config_label or "given",
                          title=f"granite run: {dataset.name}")

@@ -90,6 +90,9 @@ class MonocularVO:
         #: least ``scene_distance_min_points`` of them: the scale a re-initialisation carries over.
         self._scene_distance: float | None = None
         self._previous_frame: int | None = None
+        #: (track ids, their inverse distances) of the last estimated frame, in the window's
+        #: state at the end of :meth:`estimate` (valid until the next one)
+        self._track_inverse_distances: tuple[np.ndarray, np.ndarray] | None = None
         self.keyframe_log: list[tuple[int, int]] = []  # (frame id, sub-map) of every keyframe
         self.export_landmarks = False  # fill FrameOutput.landmarks_w (costs ~1 ms per frame)
 
@@ -220,7 +223,8 @@ class MonocularVO:
         only data that flows from the estimator back into the frontend."""
         if not self.config.estimator.motion_guided_tracking:
             return None
-        return predicted_track_positions(self.motion, self.flow, self.window, self.camera, timestamp)
+        return predicted_track_positions(self.motion, self.flow, self.window, self.camera, timestamp,
+                                         self._track_inverse_distances)
 
     def process(self, frame_id: int, timestamp: float, image: np.ndarray | None) -> FrameOutput:
         """Process one frame; ``image`` None marks a missing or corrupt image (skipped)."""
@@ -291,8 +295,12 @@ class MonocularVO:
             self.motion.update(T_w_c, timestamp, measure_motion=self._previous_frame is not None
                                and self.state is MapState.MAPPED)
             self._previous_frame = frame_id
+        # inverse distances of the frame's tracks in the final state: the frame's output, and
+        # the depths of the next frame's prediction (the same ids and state)
+        inv = win.landmarks.inverse_distances(tracks.ids)
+        self._track_inverse_distances = (tracks.ids, inv)
         return (start, timestamp, frame_id, tracks, status, submap, finite, infinite, keyframe_taken,
-                negative_entropy, drift, T_w_c)
+                negative_entropy, drift, T_w_c, inv)
 
     def finish(self, estimated) -> FrameOutput:
         """The rest of :meth:`process` after :meth:`estimate`: the frame's outputs. Reads the
@@ -301,9 +309,8 @@ class MonocularVO:
         if isinstance(estimated, FrameOutput):
             return estimated
         (start, timestamp, frame_id, tracks, status, submap, finite, infinite, keyframe_taken,
-         negative_entropy, drift, T_w_c) = estimated
+         negative_entropy, drift, T_w_c, inv) = estimated
         est, win = self.config.estimator, self.window
-        inv = win.landmarks.inverse_distances(tracks.ids)
         if status in (FrameStatus.TRACKING, FrameStatus.REINIT):
             seen = inv[inv > 0.0]
             if len(seen) >= est.scene_distance_min_points:
