@@ -46,14 +46,6 @@ class Landmark:
         return b / self.inv_dist
 
 
-class _NoLandmark:
-    inv_dist = math.nan
-
-
-#: stands for an id that is not a landmark in :meth:`LandmarkDatabase.inverse_distances`
-_NOT_A_LANDMARK = _NoLandmark()
-
-
 def _uv_pair(uv) -> tuple[float, float]:
     """``(u, v)`` as Python floats from a (2,) array (fast path) or anything of 2 elements."""
     if type(uv) is np.ndarray and uv.shape == (2,):
@@ -153,9 +145,13 @@ class LandmarkDatabase:
 
     def inverse_distances(self, landmark_ids) -> np.ndarray:
         """Inverse distances (n,) of the given ids, NaN for ids that are not landmarks."""
-        get = self._landmarks.get
-        ids = np.asarray(landmark_ids, dtype=np.int64).reshape(-1).tolist()
-        return np.array([get(i, _NOT_A_LANDMARK).inv_dist for i in ids], dtype=np.float64)
+        lms = self._landmarks
+        nan = math.nan
+        out: list[float] = []
+        for i in np.asarray(landmark_ids, dtype=np.int64).reshape(-1).tolist():
+            lm = lms.get(i)
+            out.append(nan if lm is None else lm.inv_dist)
+        return np.array(out, dtype=np.float64)
 
     def landmarks_of(self, landmark_ids) -> list[Landmark]:
         """The landmarks of the given ids (``KeyError`` for an unknown one), in order."""
