@@ -215,12 +215,52 @@ def test_presmoothing_keeps_tracks_on_noisy_images():
     frames = [np.clip(im + rng.normal(0.0, 6.0, im.shape), 0, 255).astype(np.uint8)
               for im in (img0, warp(img0, affine))]
     kept, median = {}, {}
-    for sigma in (0.0, 0.7):
-        p0, p1, r0, _ = track_pair(*frames, OpticalFlowConfig(presmooth_sigma=sigma))
+    for sigma in (0.0, 0.7):  # with the reference's pattern and fixed limit (isolates the blur)
+        config = OpticalFlowConfig(presmooth_sigma=sigma, pattern="pattern52", fb_noise_factor=0.0)
+        p0, p1, r0, _ = track_pair(*frames, config)
         kept[sigma] = len(p0) / len(r0)
         median[sigma] = np.median(np.linalg.norm(p1 - apply_affine(affine, p0), axis=1))
     assert kept[0.7] > 0.97 and kept[0.7] > kept[0.0] + 0.08
     assert median[0.7] < 0.2 and median[0.0] < 0.2
+
+
+@pytest.mark.parametrize("noise", [8.0, 12.0])
+def test_dense_pattern_and_noise_scaled_limit_keep_tracks_under_strong_noise(noise):
+    """Strong per-frame noise (8-12 DN on a low-contrast texture): the reference's 52-sample
+    diamond with the fixed 0.17 px forward-backward limit loses many tracks; the defaults (the
+    11x11 lattice, the limit scaled by the expected precision) keep nearly all, and the kept
+    tracks stay accurate against the exact motion."""
+    img0 = textured_image(H, W, seed=1, contrast=0.4)
+    affine = similarity(5.3, -2.2, np.radians(1), 1.0, CENTRE)
+    rng = np.random.default_rng(7)
+    frames = [np.clip(im + rng.normal(0.0, noise, im.shape), 0, 255).astype(np.uint8)
+              for im in (img0, warp(img0, affine))]
+    kept, err = {}, {}
+    for name, config in (("reference", OpticalFlowConfig(pattern="pattern52", fb_noise_factor=0.0)),
+                         ("defaults", OpticalFlowConfig())):
+        p0, p1, r0, _ = track_pair(*frames, config)
+        kept[name] = len(p0) / len(r0)
+        err[name] = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1)
+    assert kept["defaults"] > 0.95 and kept["defaults"] > kept["reference"] + 0.1
+    # accurate: no worse than the few the reference keeps, within 2x of OpenCV's 21x21 LK (no
+    # forward-backward check) on the same points, no gross errors
+    pts = r0.positions.astype(np.float32)
+    lk, _, _ = cv2.calcOpticalFlowPyrLK(frames[0], frames[1], pts, None, winSize=(21, 21), maxLevel=3)
+    lk_median = np.median(np.linalg.norm(lk - apply_affine(affine, pts), axis=1))
+    assert np.median(err["defaults"]) <= np.median(err["reference"]) < 2.0 * lk_median
+    assert np.median(err["defaults"]) < 2.0 * lk_median and np.mean(err["defaults"] > 2.0) < 0.01
+
+
+def test_grid_pattern_spans_the_diamond_extent():
+    from granite.optical_flow.patterns import grid_pattern, make_pattern
+    g = make_pattern("grid11", 0.75)
+    assert g.shape == (121, 2) and np.allclose(np.abs(g).max(axis=0), 0.75 * 7.0)
+    assert np.allclose(np.diff(np.unique(g[:, 0])), 0.75 * 1.4)
+    np.testing.assert_allclose(g.mean(axis=0), 0.0, atol=1e-12)  # centred: no bias
+    np.testing.assert_array_equal(make_pattern("pattern52", 0.75), pattern52(0.75))
+    with pytest.raises(ValueError):
+        make_pattern("grid5")
+    assert grid_pattern(2, 1.0).shape == (4, 2)
 
 
 def test_presmoothed_pyramid_is_the_blurred_image():
@@ -238,8 +278,11 @@ def test_forward_backward_check_rejects_occluded_patches(texture, seed):
     x0, x1, y0, y1 = 200, 440, 120, 360
     img1[y0:y1, x0:x1] = textured_image(H, W, seed=seed)[y0:y1, x0:x1]
     results = {}
-    for thr in (0.03, 1e9):  # reference check vs. effectively none
-        flow = FrameToFrameOpticalFlow(OpticalFlowConfig(fb_threshold_sq=thr))
+    configs = {"defaults": OpticalFlowConfig(),  # the noise-scaled limit (at most fb_max_sq)
+               0.03: OpticalFlowConfig(fb_threshold_sq=0.03, fb_noise_factor=0.0),  # reference
+               1e9: OpticalFlowConfig(fb_threshold_sq=1e9, fb_noise_factor=0.0)}  # effectively none
+    for thr, config in configs.items():
+        flow = FrameToFrameOpticalFlow(config)
         r0 = flow.process(0.0, texture)
         r1 = flow.process(0.1, img1)
         pred = apply_affine(affine, r0.positions)
@@ -248,9 +291,10 @@ def test_forward_backward_check_rejects_occluded_patches(texture, seed):
         clear = (pred[:, 0] < x0 - m) | (pred[:, 0] > x1 + m) | (pred[:, 1] < y0 - m) | (pred[:, 1] > y1 + m)
         survived = np.isin(r0.ids, r1.ids)
         results[thr] = (survived[occluded].mean(), survived[clear].mean(), occluded.sum())
-    occluded_kept, clear_kept, n_occluded = results[0.03]
-    assert n_occluded >= 20
-    assert occluded_kept <= 0.05 and clear_kept >= 0.9
+    for limit in ("defaults", 0.03):
+        occluded_kept, clear_kept, n_occluded = results[limit]
+        assert n_occluded >= 20
+        assert occluded_kept <= 0.05 and clear_kept >= 0.9
     assert results[1e9][0] >= 0.9  # without the check the occluded tracks would be kept
 
 
@@ -417,7 +461,7 @@ def test_tiny_images_do_not_crash(shape):
 def test_template_cache_reuse_gives_identical_tracks(texture):
     """The backward pass's templates are reused as the next forward pass's; the result must
     equal a run that recomputes every template."""
-    cfg = OpticalFlowConfig()
+    cfg = OpticalFlowConfig(fb_noise_factor=0.0)  # the kernel call below uses the fixed limit
     a1 = similarity(6.0, 3.0, 0.02, 1.0, CENTRE)
     a2 = similarity(11.0, 5.0, 0.035, 1.0, CENTRE)
     flow = FrameToFrameOpticalFlow(cfg)
@@ -425,16 +469,17 @@ def test_template_cache_reuse_gives_identical_tracks(texture):
     flow.process(0.1, warp(texture, a1))
     pyr_a, cache_a, rows = flow._pyramid, flow._cache, flow._rows
     assert np.any(rows >= 0)
-    pyr_b = build_pyramid(warp(texture, a2), cfg.levels)
+    pyr_b = build_pyramid(warp(texture, a2), cfg.levels, presmooth_sigma=cfg.presmooth_sigma)
     outputs = []
+    p = len(flow._pattern)
     for use_cache in (True, False):
         n = len(rows)
-        cache_in = cache_a if use_cache else new_template_cache(0, cfg.levels, 52)
+        cache_in = cache_a if use_cache else new_template_cache(0, cfg.levels, p)
         outputs.append(track_points(
             pyr_a.data, pyr_a.offsets, pyr_a.widths, pyr_a.heights,
             pyr_b.data, pyr_b.offsets, pyr_b.widths, pyr_b.heights,
             flow._points, flow._levels, rows if use_cache else np.full(n, -1), *cache_in,
-            *new_template_cache(n, cfg.levels, 52), pattern52(), 2.0, 6, 0.03, 2.0,
+            *new_template_cache(n, cfg.levels, p), flow._pattern, 2.0, 6, 0.03, 2.0,
         ))
     for x, y in zip(*outputs):
         np.testing.assert_array_equal(x, y)

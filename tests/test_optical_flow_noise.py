@@ -138,7 +138,7 @@ def test_noise_scaled_limit_is_the_clipped_patch_variance():
     computed here independently of the kernel."""
     img0 = add_noise(textured_image(H, W, seed=2, contrast=0.3), 3.0, 0.0, 1)
     img1 = add_noise(warp(textured_image(H, W, seed=2, contrast=0.3), similarity(2.3, -1.4, 0.01, 1.0, (W / 2, H / 2))), 3.0, 0.0, 2)
-    cfg = OpticalFlowConfig(presmooth_sigma=0.0)
+    cfg = OpticalFlowConfig(presmooth_sigma=0.0, pattern="pattern52")
     pa, pb = build_pyramid(img0, cfg.levels), build_pyramid(img1, cfg.levels)
     xs, ys = np.meshgrid(np.arange(30.0, W - 30, 23.0), np.arange(30.0, H - 30, 21.0))
     pts = np.c_[xs.ravel(), ys.ravel()]
@@ -193,7 +193,8 @@ def test_noise_scaled_limit_keeps_more_weak_patches_under_noise():
     for factor in (0.0, 3.0):
         from granite.optical_flow import FrameToFrameOpticalFlow
 
-        flow = FrameToFrameOpticalFlow(OpticalFlowConfig(presmooth_sigma=0.0, fb_noise_factor=factor))
+        flow = FrameToFrameOpticalFlow(OpticalFlowConfig(presmooth_sigma=0.0, pattern="pattern52",
+                                                      fb_noise_factor=factor))
         r0 = flow.process(0.0, frames[0])
         r1 = flow.process(0.1, frames[1])
         _, i0, i1 = np.intersect1d(r0.ids, r1.ids, return_indices=True)

@@ -21,7 +21,7 @@ SEQUENCES = Path(__file__).resolve().parents[1] / "assets" / "sequences"
 #: noise included; real KITTI frames measure 1.5-2 DN with it).
 NOISE_DN = 3.0
 #: The reference frontend (no pre-smoothing, no local-flow retry).
-REFERENCE = dict(presmooth_sigma=0.0, local_retry_rounds=0)
+REFERENCE = dict(presmooth_sigma=0.0, local_retry_rounds=0, pattern="pattern52", fb_noise_factor=0.0)
 
 
 def _sequences() -> list[Path]:

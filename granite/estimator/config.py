@@ -180,6 +180,8 @@ def _cross_checks(values: Mapping[str, Mapping[str, Any]]) -> None:
     checks = [
         (of["fast_min_threshold"] <= of["fast_threshold"], "optical_flow", "fast_min_threshold",
          f"must not exceed fast_threshold ({of['fast_threshold']})"),
+        (of["fb_noise_factor"] <= 0.0 or of["fb_max_sq"] >= of["fb_threshold_sq"], "optical_flow",
+         "fb_max_sq", f"must be >= fb_threshold_sq ({of['fb_threshold_sq']:g}) when fb_noise_factor > 0"),
         (be["lm_lambda_min"] <= be["lm_lambda_init"] <= be["lm_lambda_max"], "backend", "lm_lambda_init",
          f"must be in [lm_lambda_min, lm_lambda_max] = [{be['lm_lambda_min']:g}, {be['lm_lambda_max']:g}]"),
         (est["entropy_iteration"] <= be["max_iterations"], "estimator", "entropy_iteration",
@@ -196,7 +198,8 @@ def _construct(cls: type, kwargs: Mapping[str, Any], section: str):
     try:
         return cls(**kwargs)
     except (ConfigError, TypeError, ValueError) as error:
-        raise ConfigError(f"[{section}] {error}") from None
+        text = str(error)
+        raise ConfigError(text if text.startswith(f"[{section}]") else f"[{section}] {text}") from None
 
 
 @dataclass(frozen=True)

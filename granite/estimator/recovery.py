@@ -19,7 +19,7 @@ import numpy as np
 from granite.backend import SlidingWindow
 from granite.geometry import se3_inverse
 from granite.optical_flow import OpticalFlowConfig, build_pyramid
-from granite.optical_flow.patterns import pattern52
+from granite.optical_flow.patterns import make_pattern
 from granite.optical_flow.refind import refind_points
 
 
@@ -33,7 +33,7 @@ class LandmarkRefinder:
         self.flow_config = flow_config
         self.fb_threshold_sq = fb_threshold_sq
         self.min_zncc = min_zncc
-        self._pattern = pattern52(flow_config.pattern_scale)
+        self._pattern = make_pattern(flow_config.pattern, flow_config.pattern_scale)
         self._images: dict[int, np.ndarray] = {}
         self._pyramids: dict[int, object] = {}
         self.last_refound = 0  # points re-found in the last call

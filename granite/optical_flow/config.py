@@ -13,6 +13,7 @@ from typing import Any, Mapping
 
 from granite.config_schema import spec_field, validate_instance
 from granite.errors import ConfigError
+from granite.optical_flow.patterns import PATTERN_NAMES
 
 
 @dataclass(frozen=True)
@@ -27,7 +28,12 @@ class OpticalFlowConfig:
             neighbouring level (creation level within ``±1``).
         detect_all_levels: ``True`` detects corners on levels ``0 .. levels-2`` (the paper's
             method); ``False`` detects on level 0 only (the paper's ablation †, Table I).
-        pattern_scale: scale of the 52-point diamond pattern (2 px lattice spanning ±7 px).
+        pattern: not the reference's (``"pattern52"``, its 52-point diamond on a 2 px lattice
+            spanning ±7 px). The default ``"grid11"`` samples an 11 x 11 lattice over the same
+            extent: 121 samples instead of 52, so the tracking estimate and the
+            forward-backward distance carry less image noise (``docs/optical_flow.md``,
+            "Noise"). ``grid9`` and ``grid13`` are the cheaper and the denser choice.
+        pattern_scale: scale of the pattern (both kinds span ±7 px before scaling).
         iterations: inverse-compositional Gauss-Newton iterations per pyramid level.
         fb_threshold_sq: forward-backward check; a track is kept when the squared distance
             between its start and the back-tracked start, in pixels of its creation level,
@@ -79,6 +85,7 @@ class OpticalFlowConfig:
     levels: int = spec_field(6, 1, 12)
     grid_size: int = spec_field(40, 4, 100000)
     detect_all_levels: bool = spec_field(True)
+    pattern: str = spec_field("grid11", choices=PATTERN_NAMES, origin="ours", reference="pattern52")
     pattern_scale: float = spec_field(0.75, 0.0, 4.0, lo_open=True)
     iterations: int = spec_field(6, 1, 1000)
     fb_threshold_sq: float = spec_field(0.03, 0.0, 1e12, lo_open=True)
@@ -94,7 +101,8 @@ class OpticalFlowConfig:
                                        doc="-1 disables; used by guided and local-flow tracking")
     local_retry_rounds: int = spec_field(0, 0, 10, origin="ours", doc="0 disables (the default and the reference)")
     local_retry_neighbours: int = spec_field(8, 3, 64, origin="ours")
-    fb_noise_factor: float = spec_field(0.0, 0.0, 100.0, origin="ours", doc="0 disables")
+    fb_noise_factor: float = spec_field(3.0, 0.0, 100.0, origin="ours", reference=0.0,
+                                        doc="0 disables (the reference)")
     fb_max_sq: float = spec_field(0.3, 0.0, 1e4, lo_open=True, origin="ours")
 
     def __post_init__(self) -> None:

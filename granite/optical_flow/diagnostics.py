@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from granite.optical_flow.config import OpticalFlowConfig
-from granite.optical_flow.patterns import pattern52
+from granite.optical_flow.patterns import make_pattern
 from granite.optical_flow.pyramid import ImagePyramid
 from granite.optical_flow.tracking import PASS_ZERO, new_template_cache, track_points
 
@@ -22,7 +22,7 @@ def forward_backward(
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
     levels = np.ascontiguousarray(levels, dtype=np.int64).reshape(-1)
     n = len(points)
-    pattern = pattern52(config.pattern_scale)
+    pattern = make_pattern(config.pattern, config.pattern_scale)
 
     def one(a: ImagePyramid, b: ImagePyramid, pts: np.ndarray):
         ca = new_template_cache(n, a.num_levels, len(pattern))

@@ -28,7 +28,7 @@ import numpy as np
 from granite.optical_flow.config import OpticalFlowConfig
 from granite.optical_flow.detection import detect_new_points
 from granite.optical_flow.noise import estimate_noise, level_noise_gains
-from granite.optical_flow.patterns import pattern52
+from granite.optical_flow.patterns import make_pattern
 from granite.optical_flow.pyramid import SUPPORTED_DTYPES, ImagePyramid, build_pyramid
 from granite.optical_flow.tracking import new_template_cache, pass_order, track_points
 
@@ -140,7 +140,7 @@ class FrameToFrameOpticalFlow:
     def __init__(self, config: OpticalFlowConfig | None = None, image_size: tuple[int, int] | None = None):
         self.config = config or OpticalFlowConfig()
         self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
-        self._pattern = pattern52(self.config.pattern_scale)
+        self._pattern = make_pattern(self.config.pattern, self.config.pattern_scale)
         self._pyramid: ImagePyramid | None = None
         self._ids = np.zeros(0, dtype=np.int64)
         self._points = np.zeros((0, 2))
