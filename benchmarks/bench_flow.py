@@ -432,8 +432,11 @@ def parse_overrides(items: list[str]) -> dict:
         v = value.strip()
         if v.lower() in ("true", "false"):
             overrides[key.strip()] = v.lower() == "true"
-        else:
+            continue
+        try:
             overrides[key.strip()] = float(v) if any(c in v for c in ".eE") else int(v)
+        except ValueError:  # a string value, e.g. pattern=pattern52
+            overrides[key.strip()] = v.strip("\"'")
     return overrides
 
 

@@ -18,9 +18,12 @@ is finished when its depth map and (unless dropped) its image exist.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
+import fcntl
 import hashlib
 import json
+import os
 import tempfile
 from pathlib import Path
 
@@ -74,6 +77,25 @@ def check_output_dir(out: Path) -> None:
         raise InputError("output path is not a folder", out)
 
 
+@contextlib.contextmanager
+def folder_lock(out: Path):
+    """An exclusive lock (flock) of the output folder itself around the writes that read what
+    other processes wrote: several processes may render disjoint frame ranges into one folder
+    (``granite bench``), and the image lists and the manifest each one writes must hold the
+    frames of all of them. No lock file is left behind; where the filesystem cannot lock a
+    folder (some network filesystems) this does nothing (``granite bench`` rewrites the lists
+    after the last range anyway)."""
+    fd = os.open(out, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError:
+            pass
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
 class RunWriter:
     """Writes one run (see module doc). Construct, then :meth:`write_static`, then
     :meth:`write_frame` per rendered frame and :meth:`finish` (also after interruption)."""
@@ -118,9 +140,15 @@ class RunWriter:
                 f"{self.out}: holds a run of a different scenario or options "
                 f"(fingerprint {old.get('fingerprint')} != {self.fingerprint}); "
                 "use another --out folder")
-        for frame in old.get("frames", []):
+        self._merge_frames(old)
+
+    def _merge_frames(self, manifest: dict) -> None:
+        """Render times and sensor figures of the frames of ``manifest`` this writer has not
+        rendered itself (earlier runs, or other processes rendering other frames of the folder)."""
+        for frame in manifest.get("frames", []):
             i, sec = frame.get("index"), frame.get("render_seconds")
-            if isinstance(i, int) and sec is not None and 0 <= i < len(self.plan.times):
+            if (isinstance(i, int) and sec is not None and 0 <= i < len(self.plan.times)
+                    and i not in self.render_seconds):
                 self.render_seconds[i] = float(sec)
                 if isinstance(frame.get("sensor"), dict):
                     self.sensor_info[i] = frame["sensor"]
@@ -146,7 +174,8 @@ class RunWriter:
             self.out / "mav0" / "state_groundtruth_estimate0" / "data.csv", gt)
         if s.source is not None:
             atomic_write_text(self.out / "scenario.toml", Path(s.source).read_text(encoding="utf-8"))
-        self.write_manifest()
+        with folder_lock(self.out):
+            self.write_manifest()
 
     def write_frame(self, i: int, image: np.ndarray, depth: np.ndarray, seconds: float,
                     sensor_info: dict | None = None) -> None:
@@ -163,19 +192,30 @@ class RunWriter:
             self.sensor_info[i] = {k: float(v) for k, v in sensor_info.items()}
 
     def finish(self) -> None:
-        """Lists of present images / depth maps and the manifest (safe to call repeatedly)."""
-        n = len(self.plan.times)
-        ns = self.plan.timestamps_ns
-        imgs = [i for i in range(n) if not self.plan.dropped[i] and self.image_path(i).is_file()]
-        write_euroc_image_list(self.out / "mav0" / "cam0" / "data.csv", ns[imgs],
-                               [self.image_path(i).name for i in imgs])
-        deps = [i for i in range(n) if self.depth_path(i).is_file()]
-        write_euroc_image_list(self.out / "mav0" / "depth0" / "data.csv", ns[deps],
-                               [self.depth_path(i).name for i in deps])
-        self.write_manifest()
+        """Lists of present images / depth maps and the manifest (safe to call repeatedly;
+        under the folder lock, so the last of several processes lists every frame)."""
+        with folder_lock(self.out):
+            n = len(self.plan.times)
+            ns = self.plan.timestamps_ns
+            imgs = [i for i in range(n) if not self.plan.dropped[i] and self.image_path(i).is_file()]
+            write_euroc_image_list(self.out / "mav0" / "cam0" / "data.csv", ns[imgs],
+                                   [self.image_path(i).name for i in imgs])
+            deps = [i for i in range(n) if self.depth_path(i).is_file()]
+            write_euroc_image_list(self.out / "mav0" / "depth0" / "data.csv", ns[deps],
+                                   [self.depth_path(i).name for i in deps])
+            self.write_manifest()
 
     def write_manifest(self) -> None:
+        """The manifest, merged with the one on disk: several processes may render disjoint
+        frame ranges into one folder (``granite bench``), each keeping the others' frames
+        (callers hold :func:`folder_lock`)."""
         s, plan = self.scenario, self.plan
+        try:
+            current = json.loads((self.out / "manifest.json").read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError):
+            current = {}
+        if current.get("fingerprint") == self.fingerprint:
+            self._merge_frames(current)
         frames = [{
             "index": i,
             "timestamp_ns": int(plan.timestamps_ns[i]),

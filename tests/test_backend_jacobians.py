@@ -249,3 +249,85 @@ def test_window_gradient_matches_robust_cost():
             win.set_pose(f, T0)
             num = (cp - cm) / (4 * eps)
             assert abs(num - g_pose[6 * k + c]) <= 1e-4 * (abs(num) + 1.0), (f, c, num)
+
+
+def _ill_conditioned_landmarks(damping: float):
+    """Random 2x6 / 2x3 observation Jacobians over 4 poses with pixel-like magnitudes: well
+    conditioned landmarks, landmarks with a single observation outside the host (a rank-2
+    block, near-singular with the damping: the case that made the normal-equation elimination
+    indefinite on the 320x240 spiral) and landmarks with a nearly dependent inverse-distance
+    column (condition ~1e7)."""
+    rng = np.random.default_rng(7)
+    K = 4
+    lm_ptr, lm_host, obs_tgt = [0], [], []
+    J_h, J_t, J_l, r, w = [], [], [], [], []
+    kinds = ["good"] * 6 + ["single"] * 6 + ["dependent"] * 4
+    for kind in kinds:
+        h = int(rng.integers(K))
+        targets = [t for t in range(K) if t != h]
+        if kind == "single":
+            targets = [targets[int(rng.integers(len(targets)))]]
+        cols = rng.normal(size=(2, 3))
+        for t in [h] + targets:
+            J_h.append(800.0 * rng.normal(size=(2, 6)))
+            J_t.append(800.0 * rng.normal(size=(2, 6)))
+            jl = 800.0 * rng.normal(size=(2, 3))
+            if kind == "dependent":  # inverse-distance column ~ parallel to the first one
+                jl[:, 2] = 3.0 * jl[:, 0] + 1e-7 * 800.0 * rng.normal(size=2)
+                jl[:, 1] = 800.0 * cols[:, 1] + rng.normal(size=2)
+            J_l.append(jl)
+            r.append(rng.normal(size=2))
+            w.append(4.0 * 2.0 ** -int(rng.integers(3)))
+            obs_tgt.append(t)
+        if kind == "single":  # the host observation left out (e.g. an outlier)
+            w[-2] = 0.0
+        lm_host.append(h)
+        lm_ptr.append(len(obs_tgt))
+    arr = lambda x, dt=np.float64: np.ascontiguousarray(np.array(x, dtype=dt))  # noqa: E731
+    return (K, arr(lm_ptr, np.int64), arr(lm_host, np.int64), arr(obs_tgt, np.int64), arr(r),
+            arr(w), arr(J_h), arr(J_t), arr(J_l), damping)
+
+
+def _projected_reference(K, lm_ptr, lm_host, obs_tgt, r, w, J_h, J_t, J_l, damping):
+    """Reduced system by orthogonal projection with numpy's SVD (stable): per landmark
+    ``A_p^T (I - U U^T) A_p`` with ``U`` the left singular vectors of the damped, weighted
+    landmark Jacobian above a relative rank threshold."""
+    H = np.zeros((6 * K, 6 * K))
+    b = np.zeros(6 * K)
+    for i in range(len(lm_host)):
+        ks = [k for k in range(lm_ptr[i], lm_ptr[i + 1]) if w[k] > 0.0]
+        h = lm_host[i]
+        A_p = np.zeros((2 * len(ks) + 3, 6 * K))
+        A_l = np.zeros((2 * len(ks) + 3, 3))
+        rr = np.zeros(2 * len(ks) + 3)
+        for row, k in enumerate(ks):
+            s = np.sqrt(w[k])
+            if obs_tgt[k] != h:
+                A_p[2 * row:2 * row + 2, 6 * h:6 * h + 6] += s * J_h[k]
+                A_p[2 * row:2 * row + 2, 6 * obs_tgt[k]:6 * obs_tgt[k] + 6] += s * J_t[k]
+            A_l[2 * row:2 * row + 2] = s * J_l[k]
+            rr[2 * row:2 * row + 2] = s * r[k]
+        A_l[2 * len(ks):] = np.sqrt(damping) * np.eye(3)
+        U, sv, _ = np.linalg.svd(A_l, full_matrices=False)
+        U = U[:, sv > 1e-12 * sv.max()]
+        P = np.eye(len(A_l)) - U @ U.T
+        H += A_p.T @ P @ A_p
+        b += A_p.T @ P @ rr
+    return H, b
+
+
+@pytest.mark.parametrize("damping", [1e-9, 0.0])
+def test_schur_reduce_is_accurate_on_near_singular_landmark_blocks(damping):
+    args = _ill_conditioned_landmarks(damping)
+    H_raw, b_raw, H_red, b_red, Hll_inv, b_l = schur_reduce(*args, 0.0)
+    H_ref, b_ref = _projected_reference(*args)
+    scale = np.abs(H_raw).max()
+    np.testing.assert_allclose(H_red, H_ref, rtol=0, atol=1e-8 * scale)
+    np.testing.assert_allclose(b_red, b_ref, rtol=0, atol=1e-8 * np.abs(b_raw).max())
+    assert np.linalg.eigvalsh(H_red)[0] >= -1e-12 * scale
+    # the 3x3 inverses: exact for the well-conditioned landmarks
+    K, lm_ptr, lm_host, obs_tgt, r, w, J_h, J_t, J_l, _ = args
+    for i in range(6):
+        ks = [k for k in range(lm_ptr[i], lm_ptr[i + 1]) if w[k] > 0.0]
+        Hll = sum(w[k] * J_l[k].T @ J_l[k] for k in ks) + damping * np.eye(3)
+        np.testing.assert_allclose(Hll_inv[i] @ Hll, np.eye(3), atol=1e-9)

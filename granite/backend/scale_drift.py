@@ -39,6 +39,7 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
+import scipy.linalg
 
 from granite.backend.hessian import marginalize_dense
 from granite.geometry import hat
@@ -53,9 +54,9 @@ MIN_KEYFRAMES = 3
 #: and round-off, measured at about 1e-15..1e-13 of λ_max), Λ is not defined.
 ZERO_INFORMATION_REL = 1e-11
 #: λ_min below minus this fraction of λ_max: the information is indefinite beyond round-off
-#: (a PSD matrix in exact arithmetic), so Λ is not defined. Seen on the 320x240 spiral's last
-#: descent, where the backend's landmark elimination (``schur_reduce``, damped 3x3 inverses)
-#: loses accuracy on near-singular landmark blocks: see docs/backend.md.
+#: (a PSD matrix in exact arithmetic), so Λ is not defined. Before ``schur_reduce`` eliminated
+#: landmarks by orthogonal projection this happened on the 320x240 spiral's last descent
+#: (near-singular landmark blocks); it is now a safeguard (docs/backend.md).
 INDEFINITE_REL = 1e-9
 #: Eigenvalues within this fraction of λ_max above λ_min span the smallest eigenspace of the
 #: reference variant (a round-off bound for the eigenvectors of float64 ``eigh``).
@@ -171,8 +172,33 @@ def relative_translation_information(H: np.ndarray, poses: np.ndarray) -> np.nda
     is_keep[1:, :3] = True  # relative translations; the oldest pose and all rotations go
     keep = np.flatnonzero(is_keep.ravel())
     marg = np.flatnonzero(~is_keep.ravel())
-    H_t, _ = marginalize_dense(0.5 * (H_rel + H_rel.T), np.zeros(6 * n), keep, marg)
-    return H_t
+    return _schur_complement(0.5 * (H_rel + H_rel.T), keep, marg)
+
+
+#: The Cholesky path of :func:`_schur_complement` is taken when the Jacobi-scaled block to
+#: eliminate has all squared pivots above this (its condition number is below about 1e12, the
+#: rank cut-off of ``hessian._generalized_inverse``); otherwise the generalised inverse.
+_CHOLESKY_MIN_PIVOT2 = 1e-12
+
+
+def _schur_complement(H: np.ndarray, keep: np.ndarray, marg: np.ndarray) -> np.ndarray:
+    """``H_kk - H_km H_mm^-1 H_mk`` by a Jacobi-scaled Cholesky factorisation of ``H_mm``
+    (a tenth of the eigen-decomposition's cost); :func:`marginalize_dense` (generalised inverse)
+    when ``H_mm`` is singular or nearly so."""
+    H_mm = H[np.ix_(marg, marg)]
+    d = np.diag(H_mm)
+    if marg.size and np.all(d > 0.0):
+        sc = 1.0 / np.sqrt(d)
+        try:
+            L = np.linalg.cholesky(H_mm * sc[:, None] * sc[None, :])
+        except np.linalg.LinAlgError:
+            L = None
+        if L is not None and np.min(np.diag(L)) ** 2 > _CHOLESKY_MIN_PIVOT2:
+            X = scipy.linalg.solve_triangular(L, sc[:, None] * H[np.ix_(marg, keep)],
+                                              lower=True, check_finite=False)
+            out = H[np.ix_(keep, keep)] - X.T @ X
+            return 0.5 * (out + out.T)
+    return marginalize_dense(H, np.zeros(H.shape[0]), keep, marg)[0]
 
 
 def indicator_from_information(H_t: np.ndarray, translations: np.ndarray
@@ -205,58 +231,21 @@ def indicator_from_information(H_t: np.ndarray, translations: np.ndarray
     return value, value_ref, lam_min, lam_max, "" if value is not None else "not finite"
 
 
-def projected_reduction(problem, lin) -> np.ndarray:
-    """Reduced camera system (6K, 6K) of a linearised problem with every landmark eliminated
-    by orthogonal projection instead of the damped 3x3 inverse of ``schur_reduce``: per
-    landmark the weighted Jacobian rows ``[A_p, A_l]`` give ``A_p' = (I - U U^T) A_p`` (``U``
-    the left singular vectors of ``A_l`` above ``1e-12`` of its largest singular value) and
-    ``H += A_p'^T A_p'``, PSD by construction and accurate for near-singular landmark blocks.
-    A numpy loop over landmarks (tens of ms): the fallback when the fast system is indefinite."""
-    pk = problem.packed
-    K = len(problem.frame_ids)
-    H = np.zeros((6 * K, 6 * K))
-    for i in range(len(pk.lm_ptr) - 1):
-        ks = [k for k in range(pk.lm_ptr[i], pk.lm_ptr[i + 1]) if lin.w[k] > 0.0]
-        if not ks:
-            continue
-        h = pk.lm_host[i]
-        A_p = np.zeros((2 * len(ks), 6 * K))
-        A_l = np.empty((2 * len(ks), 3))
-        for row, k in enumerate(ks):
-            s = math.sqrt(lin.w[k])
-            t = pk.obs_tgt[k]
-            if t != h:
-                A_p[2 * row:2 * row + 2, 6 * h:6 * h + 6] += s * lin.J_h[k]
-                A_p[2 * row:2 * row + 2, 6 * t:6 * t + 6] += s * lin.J_t[k]
-            A_l[2 * row:2 * row + 2] = s * lin.J_l[k]
-        cols = np.flatnonzero(np.any(A_p != 0.0, axis=0))
-        if cols.size == 0:
-            continue
-        U, sv, _ = np.linalg.svd(A_l, full_matrices=False)
-        U = U[:, sv > 1e-12 * sv.max()] if sv.max() > 0.0 else U[:, :0]
-        A = A_p[:, cols] - U @ (U.T @ A_p[:, cols])
-        H[np.ix_(cols, cols)] += A.T @ A
-    return 0.5 * (H + H.T)
-
-
-def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True,
-                    projected: bool = False) -> KeyframeSystem:
+def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True) -> KeyframeSystem:
     """The window's information over its keyframes (see :class:`KeyframeSystem`): only
     observations made in keyframes, landmarks eliminated; the marginalisation prior, the
     no-motion terms and (``include_scale_fix``) the scale fix of Eq. 9 over all window frames,
-    with the non-keyframe frames marginalised out of them. ``projected``: eliminate the
-    landmarks by :func:`projected_reduction` (slow, exact PSD) instead of the backend kernel."""
+    with the non-keyframe frames marginalised out of them."""
     kfs = window.keyframe_ids
-    db = window.landmarks
-    # only landmarks seen in a keyframe other than their host couple poses (a host observation
-    # constrains the bearing only): the others are left out, which changes nothing but the cost
-    linked = set().union(*(db.observed_in(f) - db.hosted_by(f) for f in kfs)) if kfs else set()
-    problem = window.problem(sorted(linked), target_filter=set(kfs))
+    # every landmark with its observations made in keyframes; one seen in its host only
+    # contributes nothing after its elimination (the kernel skips it cheaply, cheaper than
+    # selecting the landmarks seen in a second keyframe beforehand)
+    problem = window.problem(None, target_filter=set(kfs))
     cost = window.cost_terms()
     if not include_scale_fix:
         cost.scale_fix = None
-    lin, red = cost.linearize(problem)
-    H_red = projected_reduction(problem, lin) if projected else red.H
+    _, red = cost.linearize(problem)
+    H_red = red.H
     (H_p, _, _), (H_s, _, _), (H_n, _, _) = cost.prior_terms(problem,
                                                              cost.no_motion_pairs(problem))
     idx = [problem.index[f] for f in kfs]
@@ -264,7 +253,10 @@ def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True,
     is_kf[idx] = True
     rows, others = np.flatnonzero(is_kf.ravel()), np.flatnonzero(~is_kf.ravel())
     H_pr = H_p + H_s + H_n
-    H_priors, _ = marginalize_dense(H_pr, np.zeros(H_pr.shape[0]), rows, others)
+    if np.any(H_pr[others]):
+        H_priors, _ = marginalize_dense(H_pr, np.zeros(H_pr.shape[0]), rows, others)
+    else:  # no pose term on a non-keyframe: nothing to marginalise
+        H_priors = H_pr[np.ix_(rows, rows)]
     sf = window.scale_fix
     return KeyframeSystem(
         frame_ids=tuple(kfs),
@@ -298,15 +290,10 @@ def scale_drift_indicator(window: SlidingWindow, include_scale_fix: bool = True
                           ) -> ScaleDriftResult:
     """Λ_scaledrift of the window at its current estimate (call it at the final estimate of a
     frame: after the optimisation, the keyframe decision and outlier removal, before
-    marginalisation). When the backend's landmark elimination makes the information indefinite
-    (round-off on near-singular landmark blocks) the landmarks are eliminated again by
-    :func:`projected_reduction`. ``include_scale_fix``: whether the scale fix of Eq. 9 counts while it is
+    marginalisation). ``include_scale_fix``: whether the scale fix of Eq. 9 counts while it is
     in the window (the reference leaves it out; see docs/backend.md for the measurement)."""
     kfs = window.keyframe_ids
     if len(kfs) < MIN_KEYFRAMES:
         return ScaleDriftResult(None, None, len(kfs),
                                 reason=f"fewer than {MIN_KEYFRAMES} keyframes")
-    result = scale_drift_of_system(keyframe_system(window, include_scale_fix))
-    if result.reason.startswith("indefinite"):  # round-off of the fast landmark elimination
-        result = scale_drift_of_system(keyframe_system(window, include_scale_fix, projected=True))
-    return result
+    return scale_drift_of_system(keyframe_system(window, include_scale_fix))

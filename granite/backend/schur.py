@@ -3,7 +3,8 @@
 Conventions: the cost is ``E = sum r^T W r`` and the normal equations are ``H dx = -b`` with
 ``H = J^T W J`` and ``b = J^T W r`` (no factor 1/2). Pose ``k`` owns rows ``6k:6k+6`` of the
 dense pose system, ordered ``[v, w]`` (decoupled twist of paper Eq. 14); each landmark owns a
-3x3 block over ``[s_x, s_y, d]``.
+3x3 block over ``[s_x, s_y, d]``, eliminated by orthogonal projection of its weighted
+Jacobian rows (thin QR, :func:`schur_reduce`).
 """
 
 from __future__ import annotations
@@ -11,44 +12,6 @@ from __future__ import annotations
 import numba
 import numpy as np
 import scipy.linalg
-
-
-@numba.njit(cache=True, nogil=True)
-def _spd_inverse3(A: np.ndarray, out: np.ndarray) -> None:
-    """Inverse of a symmetric positive semi-definite 3x3 via LDL^T; directions with a pivot
-    ``<= 1e-15 * max diag`` are treated as unconstrained (their inverse is set to 0). The
-    threshold is float64 round-off, not a setting."""
-    scale = max(A[0, 0], A[1, 1], A[2, 2])
-    tol = 1e-15 * scale if scale > 0.0 else 1e-300
-    L = np.zeros((3, 3))
-    D = np.zeros(3)
-    for j in range(3):
-        s = A[j, j]
-        for m in range(j):
-            s -= L[j, m] * L[j, m] * D[m]
-        D[j] = s
-        L[j, j] = 1.0
-        for i in range(j + 1, 3):
-            s = A[i, j]
-            for m in range(j):
-                s -= L[i, m] * L[j, m] * D[m]
-            L[i, j] = s / D[j] if D[j] > tol else 0.0
-    # inverse = L^-T D^-1 L^-1
-    Li = np.zeros((3, 3))
-    for c in range(3):
-        Li[c, c] = 1.0
-        for i in range(c + 1, 3):
-            s = 0.0
-            for m in range(c, i):
-                s -= L[i, m] * Li[m, c]
-            Li[i, c] = s
-    for i in range(3):
-        for j in range(3):
-            s = 0.0
-            for m in range(3):
-                if D[m] > tol:
-                    s += Li[m, i] * Li[m, j] / D[m]
-            out[i, j] = s
 
 
 @numba.njit(cache=True, nogil=True)
@@ -61,6 +24,82 @@ def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, Jb: np.ndarray, k
             Hb[i, j, c1, c2] += a0 * Jb[k, 0, c2] + a1 * Jb[k, 1, c2]
 
 
+#: A landmark column whose part orthogonal to the previous columns (thin QR of the
+#: weighted landmark Jacobian) is at most this fraction of its norm is linearly dependent on
+#: them to float64 round-off (a few hundred ulps): that coordinate is unconstrained and is held
+#: (not eliminated, zero step), which gives the pseudo-inverse Schur complement. Not a setting.
+DEPENDENT_COLUMN_REL = 1e-12
+
+
+@numba.njit(cache=True, nogil=True)
+def _landmark_qr(Al: np.ndarray, nr: int, Q: np.ndarray, Hll_inv: np.ndarray,
+                 R: np.ndarray, Rinv: np.ndarray, cols: np.ndarray) -> int:
+    """Thin QR of the weighted landmark Jacobian ``Al[:nr]`` (nr x 3, damping rows included)
+    by classical Gram-Schmidt with one re-orthogonalisation pass (CGS2: orthonormal to
+    round-off whatever the conditioning). Writes ``Q[:nr, :3]``, an orthonormal basis of the
+    column space in its first ``rank`` columns (the others zero), and ``Hll_inv`` =
+    ``(Al^T Al)^-1`` computed as ``R^-1 R^-T`` on the independent columns (zero rows and
+    columns for a dependent one, see :data:`DEPENDENT_COLUMN_REL`). Returns the rank.
+    ``R``, ``Rinv`` (3,3) and ``cols`` (3,) are workspaces."""
+    for c in range(3):
+        for r in range(nr):
+            Q[r, c] = 0.0
+    R[:, :] = 0.0
+    p = 0
+    for j in range(3):
+        full = 0.0
+        for r in range(nr):
+            x = Al[r, j]
+            Q[r, p] = x
+            full += x * x
+        if full == 0.0:
+            continue
+        for _ in range(2):
+            for a in range(p):
+                s = 0.0
+                for r in range(nr):
+                    s += Q[r, a] * Q[r, p]
+                R[a, p] += s
+                for r in range(nr):
+                    Q[r, p] -= s * Q[r, a]
+        nn = 0.0
+        for r in range(nr):
+            nn += Q[r, p] * Q[r, p]
+        norm = np.sqrt(nn)
+        if norm <= DEPENDENT_COLUMN_REL * np.sqrt(full):
+            for a in range(p):
+                R[a, p] = 0.0
+            for r in range(nr):
+                Q[r, p] = 0.0
+            continue
+        R[p, p] = norm
+        inv_norm = 1.0 / norm
+        for r in range(nr):
+            Q[r, p] *= inv_norm
+        cols[p] = j
+        p += 1
+    rank = p
+    # Rinv = R^-1 (upper triangular), Hll_inv = Rinv Rinv^T scattered onto the columns
+    Rinv[:, :] = 0.0
+    for c in range(rank - 1, -1, -1):
+        Rinv[c, c] = 1.0 / R[c, c]
+        for a in range(c - 1, -1, -1):
+            s = 0.0
+            for m in range(a + 1, c + 1):
+                s += R[a, m] * Rinv[m, c]
+            Rinv[a, c] = -s / R[a, a]
+    for a in range(3):
+        for b in range(3):
+            Hll_inv[a, b] = 0.0
+    for a in range(rank):
+        for b in range(rank):
+            s = 0.0
+            for m in range(max(a, b), rank):
+                s += Rinv[a, m] * Rinv[b, m]
+            Hll_inv[cols[a], cols[b]] = s
+    return rank
+
+
 @numba.njit(cache=True, nogil=True)
 def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tgt: np.ndarray,
                  r: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_t: np.ndarray,
@@ -71,6 +110,17 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
     gradient before elimination (6K,6K), (6K,), the reduced camera system after it, the
     inverses of the (damped) landmark blocks (M,3,3) and the landmark gradients (M,3).
     ``damping + lm_lambda * diag`` is added to each landmark block before inversion.
+
+    Elimination by orthogonal projection, not by inverting the 3x3 normal block: per landmark
+    the weighted Jacobian rows ``[A_p | A_l]`` (``sqrt(w)`` times the 2x6 / 2x3 blocks, plus
+    3 rows ``sqrt(damping + lm_lambda diag)`` in ``A_l`` and zero in ``A_p``) give the thin
+    QR ``A_l = Q R`` (Gram-Schmidt with re-orthogonalisation) and ``G = Q^T A_p``; the landmark's Schur term is
+    ``H_pl H_ll^-1 H_lp = G^T G`` and ``H_pl H_ll^-1 b_l = G^T Q^T r``. ``Q`` is orthonormal
+    to round-off whatever the conditioning of ``A_l``, so ``H_raw - G^T G`` is the reduced
+    system of a Jacobian within round-off of the true one (positive semi-definite up to
+    ``eps |H|``); the 3x3 inverse of ``A_l^T A_l`` instead squares the condition number and
+    made the reduced system indefinite on near-singular landmark blocks (a landmark with a
+    single observation outside its host: rank 2 plus the damping; docs/backend.md).
     Accumulation uses 6x6 block storage and only blocks ``(i, j)`` with ``i <= j``.
     """
     n6 = 6 * num_poses
@@ -81,44 +131,57 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
     m = lm_ptr.shape[0] - 1
     Hll_inv = np.zeros((m, 3, 3))
     b_l = np.zeros((m, 3))
+    max_obs = 0
+    for i in range(m):
+        max_obs = max(max_obs, lm_ptr[i + 1] - lm_ptr[i])
+    nr_max = 2 * max_obs + 3
+    Al = np.zeros((nr_max, 3))
+    Q = np.zeros((nr_max, 3))
+    row_obs = np.empty(max_obs, dtype=np.int64)
     slot = -np.ones(num_poses, dtype=np.int64)
     slot_pose = np.empty(num_poses, dtype=np.int64)
-    Hpl = np.zeros((num_poses, 6, 3))
-    A = np.zeros((num_poses, 6, 3))
-    Hll = np.zeros((3, 3))
+    G = np.zeros((num_poses, 3, 6))
+    diag = np.zeros(3)
     bli = np.zeros(3)
+    qr_ = np.zeros(3)
     wJh = np.zeros((2, 6))
     wJt = np.zeros((2, 6))
     inv = np.zeros((3, 3))
+    qr_R = np.zeros((3, 3))
+    qr_Rinv = np.zeros((3, 3))
+    qr_cols = np.zeros(3, dtype=np.int64)
+    sqw = np.empty(max_obs)
     for i in range(m):
         h = lm_host[i]
         ns = 0
-        Hll[:, :] = 0.0
+        no = 0
+        diag[:] = 0.0
         bli[:] = 0.0
         for k in range(lm_ptr[i], lm_ptr[i + 1]):
             wk = w[k]
             if wk == 0.0:
                 continue
+            sk = np.sqrt(wk)
+            for a in range(2):
+                for c in range(3):
+                    Al[2 * no + a, c] = sk * J_l[k, a, c]
+            row_obs[no] = k
+            sqw[no] = sk
+            no += 1
             for c1 in range(3):
                 bli[c1] += wk * (J_l[k, 0, c1] * r[k, 0] + J_l[k, 1, c1] * r[k, 1])
-                for c2 in range(c1, 3):
-                    Hll[c1, c2] += wk * (J_l[k, 0, c1] * J_l[k, 0, c2]
-                                         + J_l[k, 1, c1] * J_l[k, 1, c2])
+                diag[c1] += wk * (J_l[k, 0, c1] * J_l[k, 0, c1] + J_l[k, 1, c1] * J_l[k, 1, c1])
             t = obs_tgt[k]
             if t == h:
                 continue
             if slot[h] < 0:
                 slot[h] = ns
                 slot_pose[ns] = h
-                Hpl[ns, :, :] = 0.0
                 ns += 1
             if slot[t] < 0:
                 slot[t] = ns
                 slot_pose[ns] = t
-                Hpl[ns, :, :] = 0.0
                 ns += 1
-            sh = slot[h]
-            st = slot[t]
             for a in range(2):
                 for c in range(6):
                     wJh[a, c] = wk * J_h[k, a, c]
@@ -128,31 +191,50 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
             for c1 in range(6):
                 b[oh + c1] += wJh[0, c1] * r[k, 0] + wJh[1, c1] * r[k, 1]
                 b[ot + c1] += wJt[0, c1] * r[k, 0] + wJt[1, c1] * r[k, 1]
-                for c2 in range(3):
-                    Hpl[sh, c1, c2] += wJh[0, c1] * J_l[k, 0, c2] + wJh[1, c1] * J_l[k, 1, c2]
-                    Hpl[st, c1, c2] += wJt[0, c1] * J_l[k, 0, c2] + wJt[1, c1] * J_l[k, 1, c2]
             _add_jtwj(Hb, h, h, wJh, J_h, k)
             _add_jtwj(Hb, t, t, wJt, J_t, k)
             if h < t:
                 _add_jtwj(Hb, h, t, wJh, J_t, k)
             else:
                 _add_jtwj(Hb, t, h, wJt, J_h, k)
-        for c1 in range(3):
-            for c2 in range(c1):
-                Hll[c1, c2] = Hll[c2, c1]
-        for c in range(3):
-            Hll[c, c] += damping + lm_lambda * Hll[c, c]
-        _spd_inverse3(Hll, inv)
-        Hll_inv[i, :, :] = inv
         b_l[i, :] = bli
+        nr = 2 * no + 3
+        for c in range(3):
+            for c2 in range(3):
+                Al[2 * no + c, c2] = 0.0
+            Al[2 * no + c, c] = np.sqrt(damping + lm_lambda * diag[c])
+        rank = _landmark_qr(Al, nr, Q, inv, qr_R, qr_Rinv, qr_cols)
+        Hll_inv[i, :, :] = inv
+        if ns == 0 or rank == 0:
+            for a in range(ns):
+                slot[slot_pose[a]] = -1
+            continue
+        # G_slot = Q^T A_p[:, slot] and Q^T r over the observation rows (damping rows: A_p = 0;
+        # the columns of Q beyond the rank are zero)
         for a in range(ns):
-            pa = slot_pose[a]
-            oa = 6 * pa
+            for q in range(3):
+                for c in range(6):
+                    G[a, q, c] = 0.0
+        qr_[:] = 0.0
+        sh = slot[h]
+        for o in range(no):
+            k = row_obs[o]
+            sk = sqw[o]
+            t = obs_tgt[k]
+            st = slot[t]
+            for q in range(3):
+                q0 = Q[2 * o, q] * sk
+                q1 = Q[2 * o + 1, q] * sk
+                qr_[q] += q0 * r[k, 0] + q1 * r[k, 1]
+                if t == h:
+                    continue
+                for c in range(6):
+                    G[sh, q, c] += q0 * J_h[k, 0, c] + q1 * J_h[k, 1, c]
+                    G[st, q, c] += q0 * J_t[k, 0, c] + q1 * J_t[k, 1, c]
+        for a in range(ns):
+            oa = 6 * slot_pose[a]
             for c1 in range(6):
-                for c2 in range(3):
-                    A[a, c1, c2] = (Hpl[a, c1, 0] * inv[0, c2] + Hpl[a, c1, 1] * inv[1, c2]
-                                    + Hpl[a, c1, 2] * inv[2, c2])
-                sb[oa + c1] += A[a, c1, 0] * bli[0] + A[a, c1, 1] * bli[1] + A[a, c1, 2] * bli[2]
+                sb[oa + c1] += G[a, 0, c1] * qr_[0] + G[a, 1, c1] * qr_[1] + G[a, 2, c1] * qr_[2]
         for a in range(ns):
             pa = slot_pose[a]
             for c in range(ns):
@@ -160,12 +242,11 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
                 if pa > pc:
                     continue
                 for c1 in range(6):
-                    x0 = A[a, c1, 0]
-                    x1 = A[a, c1, 1]
-                    x2 = A[a, c1, 2]
+                    x0 = G[a, 0, c1]
+                    x1 = G[a, 1, c1]
+                    x2 = G[a, 2, c1]
                     for c2 in range(6):
-                        Sb[pa, pc, c1, c2] += (x0 * Hpl[c, c2, 0] + x1 * Hpl[c, c2, 1]
-                                               + x2 * Hpl[c, c2, 2])
+                        Sb[pa, pc, c1, c2] += x0 * G[c, 0, c2] + x1 * G[c, 1, c2] + x2 * G[c, 2, c2]
         for a in range(ns):
             slot[slot_pose[a]] = -1
     H = np.empty((n6, n6))

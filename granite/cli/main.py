@@ -20,7 +20,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from granite.errors import GraniteError  # noqa: E402
 
 #: Subcommand modules, in the order ``--help`` lists them.
-SUBCOMMANDS: tuple[str, ...] = ("demo", "run", "eval", "view", "track")
+SUBCOMMANDS: tuple[str, ...] = ("demo", "run", "eval", "view", "track", "bench")
 
 
 class _Parser(argparse.ArgumentParser):

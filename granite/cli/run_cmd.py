@@ -95,16 +95,23 @@ def config_name(args) -> str:
     return name + (f" with ablation {' '.join(ablations)}" if ablations else "")
 
 
-def load_config(args) -> VoConfig:
-    """The configuration file (or the defaults) with the ablation switches applied."""
-    config = VoConfig.load(args.config) if args.config else VoConfig()
-    if args.finest_level_only:
+def apply_ablations(config: VoConfig, finest_level_only: bool = False,
+                    current_frame_keyframe: bool = False) -> VoConfig:
+    """``config`` with the paper's ablations switched on: † corners on the finest level only,
+    ‡ the current (not the previous) frame made keyframe."""
+    if finest_level_only:
         config = dataclasses.replace(
             config, optical_flow=dataclasses.replace(config.optical_flow, detect_all_levels=False))
-    if args.current_frame_keyframe:
+    if current_frame_keyframe:
         config = dataclasses.replace(
             config, estimator=dataclasses.replace(config.estimator, previous_frame_as_keyframe=False))
     return config
+
+
+def load_config(args) -> VoConfig:
+    """The configuration file (or the defaults) with the ablation switches applied."""
+    config = VoConfig.load(args.config) if args.config else VoConfig()
+    return apply_ablations(config, args.finest_level_only, args.current_frame_keyframe)
 
 
 def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None, spawn: bool = False,
