@@ -20,9 +20,11 @@ name, table) while the wording of the messages stays the same everywhere.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import field
+from pathlib import Path
 from typing import Any, get_origin, get_type_hints
 
 
@@ -159,3 +161,33 @@ def check_table(
 def build_dataclass(cls: type, table: Any, err: Callable[[str], Exception], **options: Any) -> Any:
     """``cls(**table)`` after :func:`check_table` (same options)."""
     return cls(**check_table(cls, table, err, **options))
+
+
+def toml_value(value: Any) -> str:
+    """``value`` (bool, int, float, str or a list of them) written as a TOML value."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)  # a JSON string is a valid TOML basic string
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {value!r} as TOML")
+
+
+def resolve_bundled_toml(name_or_path: str | Path, folder: Path, kind: str) -> Path:
+    """A path to an existing ``.toml`` file, or the name of a bundled one (``folder/NAME.toml``);
+    otherwise a :class:`granite.errors.ConfigError` naming the bundled ``kind`` files."""
+    from granite.errors import ConfigError
+
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        if not p.is_file():
+            raise ConfigError(f"{p}: {kind} file not found")
+        return p
+    bundled = folder / f"{p.name}.toml"
+    if not bundled.is_file():
+        names = ", ".join(sorted(q.stem for q in folder.glob("*.toml")))
+        raise ConfigError(f"{name_or_path}: no such {kind} file or bundled {kind} ({names})")
+    return bundled

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from granite.config_schema import build_dataclass
+from granite.config_schema import build_dataclass, resolve_bundled_toml
 from granite.config_schema import check_value as _check_value
 from granite.config_schema import spec_field as _f
 from granite.errors import ConfigError
@@ -361,16 +361,7 @@ def parse_scenario(data: dict, source: str | Path = "<scenario>") -> Scenario:
 
 def resolve_scenario_path(name_or_path: str | Path) -> Path:
     """A path to an existing file, or the name of a bundled scenario (``scenarios/NAME.toml``)."""
-    p = Path(name_or_path)
-    if p.suffix == ".toml" or p.exists():
-        if not p.is_file():
-            raise ConfigError(f"{p}: scenario file not found")
-        return p
-    bundled = SCENARIO_DIR / f"{p.name}.toml"
-    if not bundled.is_file():
-        names = ", ".join(sorted(q.stem for q in SCENARIO_DIR.glob("*.toml")))
-        raise ConfigError(f"{name_or_path}: no such scenario file or bundled scenario ({names})")
-    return bundled
+    return resolve_bundled_toml(name_or_path, SCENARIO_DIR, "scenario")
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:

@@ -141,11 +141,13 @@ def _long_turn(tmp_path):
     return open_dataset(write_planar_dataset(tmp_path / "turn", ts, poses)), poses, (n_leg1, n_turn, n_leg2)
 
 
-#: With the default frontend (pre-smoothing and the local-flow retry together) a few finite
-#: landmarks survive this synthetic turn and the map is never lost (measured: 146 tracking
-#: frames, no reinit); without the local-flow retry every finite landmark leaves the view, which
-#: is the case these tests are about.
-_LOSES_THE_MAP = VoConfig.from_dict({"optical_flow": {"local_retry_rounds": 0}})
+#: With the default frontend (the 11x11 lattice and the noise-scaled forward-backward limit) a
+#: few finite landmarks survive this synthetic turn and the map is never lost (the heading test
+#: above covers that case); with the reference's pattern and fixed limit, and without the
+#: local-flow retry, every finite landmark leaves the view, which is the case these tests are
+#: about: re-initialisation after the map is lost.
+_REFERENCE_TRACKER = {"local_retry_rounds": 0, "pattern": "pattern52", "fb_noise_factor": 0.0}
+_LOSES_THE_MAP = VoConfig.from_dict({"optical_flow": _REFERENCE_TRACKER})
 
 
 @pytest.mark.slow
@@ -177,7 +179,7 @@ def test_reinitialisation_without_keeping_the_scale_starts_a_new_submap(tmp_path
     after the long turn starts a new sub-map there, without a tracking failure."""
     dataset, _, (n_leg1, n_turn, _) = _long_turn(tmp_path)
     config = VoConfig.from_dict({"estimator": {"reinit_keeps_scale": False},
-                                 "optical_flow": {"local_retry_rounds": 0}})
+                                 "optical_flow": _REFERENCE_TRACKER})
     result = run_vo(dataset, config, progress=False)
     states = [d.state for d in result.diagnostics]
     submaps = [d.submap for d in result.diagnostics]

@@ -10,15 +10,8 @@ from pathlib import Path
 
 from granite.bench.study import Study
 from granite.bench.tasks import RESULT_COLUMNS, TIMING_COLUMNS, run_dir
+from granite.estimator.diagnostics import csv_cell
 from granite.io import atomic_path, atomic_write_text
-
-
-def _csv_value(v) -> str:
-    if v is None:
-        return ""
-    if isinstance(v, float):
-        return repr(v)
-    return str(v)
 
 
 def results_csv(rows: list[dict]) -> str:
@@ -26,7 +19,7 @@ def results_csv(rows: list[dict]) -> str:
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(RESULT_COLUMNS)
     for row in rows:
-        writer.writerow([_csv_value(row.get(c)) for c in RESULT_COLUMNS])
+        writer.writerow([csv_cell(row.get(c)) for c in RESULT_COLUMNS])
     return buf.getvalue()
 
 

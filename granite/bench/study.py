@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from granite.config_schema import check_value
+from granite.config_schema import check_value, resolve_bundled_toml, toml_value
 from granite.errors import ConfigError, GraniteError
 from granite.evaluation import ALIGNMENTS, DEFAULT_RPE_DELTA
 
@@ -137,16 +137,7 @@ def slugify(text: str) -> str:
 
 def resolve_study_path(name_or_path: str | Path) -> Path:
     """A study file, or the name of a bundled one (``studies/NAME.toml``)."""
-    p = Path(name_or_path)
-    if p.suffix == ".toml" or p.exists():
-        if not p.is_file():
-            raise ConfigError(f"{p}: study file not found")
-        return p
-    bundled = STUDY_DIR / f"{p.name}.toml"
-    if not bundled.is_file():
-        names = ", ".join(sorted(q.stem for q in STUDY_DIR.glob("*.toml")))
-        raise ConfigError(f"{name_or_path}: no such study file or bundled study ({names})")
-    return bundled
+    return resolve_bundled_toml(name_or_path, STUDY_DIR, "study")
 
 
 def load_study(name_or_path: str | Path, check_flights: bool = True) -> Study:
@@ -161,28 +152,16 @@ def load_study(name_or_path: str | Path, check_flights: bool = True) -> Study:
     return parse_study(data, path, check_flights)
 
 
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value, ensure_ascii=False)
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    raise TypeError(f"cannot write {value!r} as TOML")
-
-
 def scenario_toml(data: dict) -> str:
     """A scenario dict (top-level keys and one level of tables) as TOML."""
     lines = ["# written by granite bench: the study's scenario with its seed and overrides"]
     tables = {k: v for k, v in data.items() if isinstance(v, dict)}
     for key, value in data.items():
         if key not in tables:
-            lines.append(f"{key} = {_toml_value(value)}")
+            lines.append(f"{key} = {toml_value(value)}")
     for name, table in tables.items():
         lines.append(f"\n[{name}]")
-        lines.extend(f"{key} = {_toml_value(value)}" for key, value in table.items())
+        lines.extend(f"{key} = {toml_value(value)}" for key, value in table.items())
     return "\n".join(lines) + "\n"
 
 

@@ -38,6 +38,7 @@ from granite.config_schema import (
     has_limits,
     limits,
     spec_field,
+    toml_value,
     validate_instance,
 )
 from granite.errors import ConfigError
@@ -59,6 +60,13 @@ class EstimatorConfig:
             observes fewer landmarks with d > 0.
         failure_min_connected: with at least two keyframes, fewer connected landmarks is a
             tracking failure (restart, new sub-map).
+        triangulate_needs_map: ours (the reference: false). New landmarks get a finite
+            inverse distance, and points at infinity are re-triangulated, only from a frame that
+            observes at least ``min_finite_observations`` finite landmarks, i.e. whose
+            translation the map measures. Without it, once every finite point has left the view
+            (a long turn in place), the translation guessed by the motion model becomes the
+            baseline, the points at infinity come back at an arbitrary scale and the map
+            initialisation that should set it never runs (docs/estimator.md).
         min_triangulation_distance: a new landmark whose best baseline is shorter (map units)
             is inserted at infinity (d = 0).
         entropy_iteration: the keyframe decision is taken on the system linearised after this
@@ -110,6 +118,7 @@ class EstimatorConfig:
     min_finite_observations: int = spec_field(5, 0, 100000)
     failure_min_connected: int = spec_field(7, 0, 100000)
     min_triangulation_distance: float = spec_field(0.03, 0.0, 1e6)
+    triangulate_needs_map: bool = spec_field(True, origin="ours", reference=False)
     entropy_iteration: int = spec_field(3, 1, 1000, origin="ours", reference=4,
                                         doc="at most [backend] max_iterations")
     entropy_translation_finite_points: int = spec_field(5, 0, 100000)
@@ -287,15 +296,5 @@ class VoConfig:
         for f in dataclasses.fields(self):
             lines.append(f"\n[{f.name}]")
             for key, value in dataclasses.asdict(getattr(self, f.name)).items():
-                lines.append(f"{key} = {_toml_value(value)}")
+                lines.append(f"{key} = {toml_value(value)}")
         return "\n".join(lines) + "\n"
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    raise TypeError(f"cannot write {value!r} as TOML")

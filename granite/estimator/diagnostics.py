@@ -69,7 +69,9 @@ REQUIRED_COLUMNS = tuple(f.name for f in fields(FrameDiagnostics)
                          if f.default is MISSING and f.default_factory is MISSING)
 
 
-def _format(value) -> str:
+def csv_cell(value) -> str:
+    """A CSV cell: empty for None and non-finite floats (never NaN), 1/0 for booleans, floats
+    with full precision."""
     if value is None:
         return ""
     if isinstance(value, bool):
@@ -84,7 +86,7 @@ def diagnostics_to_csv(rows: list[FrameDiagnostics]) -> str:
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(COLUMNS)
     for row in rows:
-        values = [_format(v) for v in astuple(row)]
+        values = [csv_cell(v) for v in astuple(row)]
         values[0] = f"{row.timestamp:.9f}"  # nanosecond resolution, no float noise
         writer.writerow(values)
     return buffer.getvalue()

@@ -29,9 +29,10 @@ class LandmarkTriangulator:
         """Unit bearings (n, 3) in the camera frame of pixels (n, 2), and validity (n,)."""
         return self.camera.unproject(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
 
-    def add_hosted_by(self, tracks: dict[int, FrameTracks], host: int) -> int:
+    def add_hosted_by(self, tracks: dict[int, FrameTracks], host: int, triangulate: bool = True) -> int:
         """Landmarks for the host keyframe's tracks that are not landmarks yet, observed in the
-        host and in every window frame of ``tracks`` that saw them. Returns the number added."""
+        host and in every window frame of ``tracks`` that saw them; all at infinity when
+        ``triangulate`` is false. Returns the number added."""
         win, db = self.window, self.window.landmarks
         host_tracks = tracks[host]
         new_ids = [tid for tid in host_tracks.positions if tid not in db]
@@ -49,7 +50,7 @@ class LandmarkTriangulator:
             seen = [f for f in frames if tid in tracks[f].positions]
             inv_dist = 0.0
             candidates = sorted((f for f in seen if baselines[f] >= self.min_baseline),
-                                key=lambda f: -baselines[f])
+                                key=lambda f: -baselines[f]) if triangulate else []
             for f in candidates[:1]:
                 inv_dist = self.inverse_distance(T_w_h, b, f, tracks[f].positions[tid])
             win.add_landmark(tid, host, b, inv_dist)

@@ -41,6 +41,11 @@ class ConstantVelocityModel:
             self._motion = (se3_inverse(self.last_pose) @ T_w_c, timestamp - self.last_time)
         self.last_pose, self.last_time = T_w_c, timestamp
 
+    def forget_motion(self) -> None:
+        """Drop the motion estimate (a map (re)initialisation re-sets the translation: the step
+        from the frame before it is not a motion)."""
+        self._motion = None
+
     def predict(self, timestamp: float) -> np.ndarray:
         """``T_w_c`` at ``timestamp``: the last relative motion scaled to the elapsed time (so
         frame drops are extrapolated, by at most ``max_extrapolation`` steps), or the last

@@ -172,7 +172,7 @@ class MonocularVO:
         self.selector.reset()
         return True
 
-    def _insert_keyframe(self, frame_id: int, forced: bool) -> bool:
+    def _insert_keyframe(self, frame_id: int, forced: bool, triangulate: bool = True) -> bool:
         """Make the previous frame (paper IV-D; the current one for ablation ‡ or when there is
         none) a keyframe hosting new landmarks, then run the extra iterations. When the previous
         frame already is a keyframe, an entropy decision is dropped (its surviving tracks are
@@ -187,7 +187,7 @@ class MonocularVO:
             elif not forced:
                 return False
         win.make_keyframe(kf)
-        self.triangulator.add_hosted_by(self._tracks, kf)
+        self.triangulator.add_hosted_by(self._tracks, kf, triangulate=triangulate)
         if kf != frame_id:  # the current frame observes the new landmarks too
             self.triangulator.observe_hosted_by(kf, frame_id, self._tracks[frame_id])
         self.keyframe_log.append((kf, self.submap))
@@ -211,9 +211,12 @@ class MonocularVO:
         take = self.selector.update(
             negative_entropy if negative_entropy is not None else float("nan"), finite + infinite
         )
+        # the map measures this frame's translation only through finite landmarks (IV-C)
+        measured = not est.triangulate_needs_map or finite >= est.min_finite_observations
         inserted = take and not win.is_keyframe(frame_id) and self._insert_keyframe(
-            frame_id, forced=finite + infinite < est.keyframe_min_connected)
-        self.triangulator.retriangulate_infinite(frame_id)
+            frame_id, forced=finite + infinite < est.keyframe_min_connected, triangulate=measured)
+        if measured:
+            self.triangulator.retriangulate_infinite(frame_id)
         win.remove_outliers()
         return negative_entropy, inserted
 
@@ -292,8 +295,10 @@ class MonocularVO:
                 for f in marg:
                     self._tracks.pop(f, None)
                 self.refinder.prune()
+            if initialized:  # the pose jumped to the new map's: no motion to measure
+                self.motion.forget_motion()
             self.motion.update(T_w_c, timestamp, measure_motion=self._previous_frame is not None
-                               and self.state is MapState.MAPPED)
+                               and self.state is MapState.MAPPED and not initialized)
             self._previous_frame = frame_id
         # inverse distances of the frame's tracks in the final state: the frame's output, and
         # the depths of the next frame's prediction (the same ids and state)
