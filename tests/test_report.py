@@ -98,14 +98,14 @@ def test_demo_interrupted_while_rendering_exits_130(tmp_path, capsys, monkeypatc
 @pytest.mark.slow
 def test_demo_interrupted_during_the_run_keeps_the_finished_outputs(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(demo_cmd, "render", _fake_render([]))
-    original = MonocularVO.process
+    original = MonocularVO.estimate  # the estimator's step, in the sequential and concurrent modes
 
-    def process(self, frame_id, timestamp, image):
+    def estimate(self, frame_id, timestamp, image, *args):
         if frame_id == 30:
             raise KeyboardInterrupt
-        return original(self, frame_id, timestamp, image)
+        return original(self, frame_id, timestamp, image, *args)
 
-    monkeypatch.setattr(MonocularVO, "process", process)
+    monkeypatch.setattr(MonocularVO, "estimate", estimate)
     out = tmp_path / "o"
     assert main(["demo", "--out", str(out), "--quiet"]) == 130
     assert "interrupted" in capsys.readouterr().err

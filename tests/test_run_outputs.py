@@ -181,14 +181,14 @@ def test_failed_evaluation_writes_no_null_and_says_why(flight, tmp_path, capsys)
 
 def test_numerical_warnings_are_counted_per_frame_and_shown_once(flight, tmp_path, capsys, monkeypatch):
     root, _, _ = flight
-    original = MonocularVO.process
+    original = MonocularVO.estimate  # the estimator's step, in the sequential and concurrent modes
 
-    def noisy(self, frame_id, timestamp, image):
+    def noisy(self, frame_id, timestamp, image, *args):
         if 5 <= frame_id < 12:
             np.array([1.0]) / np.array([0.0])  # numpy: RuntimeWarning, divide by zero
-        return original(self, frame_id, timestamp, image)
+        return original(self, frame_id, timestamp, image, *args)
 
-    monkeypatch.setattr(MonocularVO, "process", noisy)
+    monkeypatch.setattr(MonocularVO, "estimate", noisy)
     out = tmp_path / "run"
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # nothing may leak out unrecorded

@@ -153,6 +153,11 @@ class LandmarkDatabase:
             out.append(nan if lm is None else lm.inv_dist)
         return np.array(out, dtype=np.float64)
 
+    def landmarks_of(self, landmark_ids) -> list[Landmark]:
+        """The landmarks of the given ids (``KeyError`` for an unknown one), in order."""
+        lms = self._landmarks
+        return [lms[i] for i in np.asarray(landmark_ids, dtype=np.int64).reshape(-1).tolist()]
+
     # -------------------------------------------------------------- observations
     def add_observation(self, landmark_id: int, frame_id: int, uv: np.ndarray,
                         level: int = 0) -> None:

@@ -38,7 +38,7 @@ from granite.backend.packing import PackedObservations
 from granite.backend.stereographic import bearing_from_stereo_into
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def transform_observations(poses: np.ndarray, poses_lin: np.ndarray, lm_host: np.ndarray,
                            lm_s: np.ndarray, lm_d: np.ndarray, obs_lm: np.ndarray,
                            obs_tgt: np.ndarray, with_jacobians: bool):
@@ -58,7 +58,7 @@ def transform_observations(poses: np.ndarray, poses_lin: np.ndarray, lm_host: np
     return p, p_lin, J_h, J_t, J_l
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _point_in_target(T_h: np.ndarray, T_t: np.ndarray, b: np.ndarray, d: float,
                      out: np.ndarray, k: int) -> None:
     """``out[k] = R_w_t^T (R_w_h b + (t_w_h - t_w_t) d)``."""
@@ -69,7 +69,7 @@ def _point_in_target(T_h: np.ndarray, T_t: np.ndarray, b: np.ndarray, d: float,
         out[k, r] = T_t[0, r] * q0 + T_t[1, r] * q1 + T_t[2, r] * q2
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def transform_observations_into(poses: np.ndarray, poses_lin: np.ndarray, lm_host: np.ndarray,
                                 lm_s: np.ndarray, lm_d: np.ndarray, obs_lm: np.ndarray,
                                 obs_tgt: np.ndarray, with_jacobians: bool, p: np.ndarray,
@@ -142,7 +142,7 @@ def transform_observations_into(poses: np.ndarray, poses_lin: np.ndarray, lm_hos
             J_t[k, r, 5] = a0 * ql[1] - a1 * ql[0]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _obs_weight(level: int, d: float, inv_var: float, inf_factor: float) -> float:
     w = inv_var / (2.0 ** level)
     if d == 0.0:
@@ -150,7 +150,7 @@ def _obs_weight(level: int, d: float, inv_var: float, inf_factor: float) -> floa
     return w
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def linearize_observations(uv: np.ndarray, J_pi: np.ndarray, valid: np.ndarray,
                            J_h3: np.ndarray, J_t3: np.ndarray, J_l3: np.ndarray,
                            obs_uv: np.ndarray, obs_level: np.ndarray, obs_lm: np.ndarray,
@@ -171,7 +171,7 @@ def linearize_observations(uv: np.ndarray, J_pi: np.ndarray, valid: np.ndarray,
     return r, w, J_h, J_t, J_l, cost
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def linearize_observations_into(uv, J_pi, valid, J_h3, J_t3, J_l3, obs_uv, obs_level, obs_lm,
                                 lm_d, inv_var, huber, inf_factor, r, w, J_h, J_t, J_l) -> float:
     """:func:`linearize_observations` writing into preallocated outputs; returns the cost.
@@ -216,7 +216,7 @@ def linearize_observations_into(uv, J_pi, valid, J_h3, J_t3, J_l3, obs_uv, obs_l
     return cost
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def robust_cost(uv: np.ndarray, valid: np.ndarray, obs_uv: np.ndarray, obs_level: np.ndarray,
                 obs_lm: np.ndarray, lm_d: np.ndarray, inv_var: float, huber: float,
                 inf_factor: float) -> float:

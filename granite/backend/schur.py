@@ -14,7 +14,7 @@ import numpy as np
 import scipy.linalg
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, Jb: np.ndarray, k: int) -> None:
     """``Hb[i, j] += wJa^T Jb[k]`` for 2x6 Jacobians (block layout (K,K,6,6))."""
     for c1 in range(6):
@@ -31,7 +31,7 @@ def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, Jb: np.ndarray, k
 DEPENDENT_COLUMN_REL = 1e-12
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _landmark_qr(Al: np.ndarray, nr: int, Q: np.ndarray, Hll_inv: np.ndarray,
                  R: np.ndarray, Rinv: np.ndarray, cols: np.ndarray) -> int:
     """Thin QR of the weighted landmark Jacobian ``Al[:nr]`` (nr x 3, damping rows included)
@@ -100,7 +100,7 @@ def _landmark_qr(Al: np.ndarray, nr: int, Q: np.ndarray, Hll_inv: np.ndarray,
     return rank
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tgt: np.ndarray,
                  r: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_t: np.ndarray,
                  J_l: np.ndarray, damping: float, lm_lambda: float):
@@ -264,7 +264,7 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
     return H, b, Hr, b - sb, Hll_inv, b_l
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def back_substitute(dx: np.ndarray, lm_ptr: np.ndarray, lm_host: np.ndarray,
                     obs_tgt: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_t: np.ndarray,
                     J_l: np.ndarray, Hll_inv: np.ndarray, b_l: np.ndarray) -> np.ndarray:

@@ -170,8 +170,7 @@ class SlidingWindow:
     def landmark_points(self, landmark_ids, T_x_w: np.ndarray | None = None) -> np.ndarray:
         """Euclidean points (n, 3) of landmarks with ``d > 0`` in frame x (``T_x_w`` maps world
         into x; the world frame without it), vectorised and grouped by host keyframe."""
-        db = self.landmarks
-        lms = [db.landmark(int(i)) for i in landmark_ids]
+        lms = self.landmarks.landmarks_of(landmark_ids)
         if not lms:
             return np.zeros((0, 3))
         s = np.array([lm.s for lm in lms], dtype=np.float64).reshape(-1, 2)

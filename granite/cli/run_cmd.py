@@ -11,7 +11,7 @@ from pathlib import Path
 from granite.cli.eval_cmd import positive_seconds
 from granite.errors import GraniteError
 from granite.estimator.config import VoConfig
-from granite.estimator.records import FrameRecord, write_records
+from granite.estimator.records import FrameRecord, RecordWriter, write_records
 from granite.estimator.runner import TRAJECTORY_FORMATS, RunResult, run_vo, summary_dict, write_run
 from granite.evaluation import DEFAULT_RPE_DELTA, evaluate
 from granite.evaluation.initialization import initialization_delay
@@ -81,6 +81,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     viz.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="save a rerun recording")
     viz.add_argument("--spawn", action="store_true", help="stream live to a rerun viewer (needs a display)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--sequential", action="store_true",
+                   help="one frame after the other on one thread (debugging; the default runs the "
+                        "frontend of the next frame concurrently, with bit-identical results)")
     return p
 
 
@@ -114,11 +117,11 @@ def load_config(args) -> VoConfig:
 def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None, spawn: bool = False,
                 delta: float = DEFAULT_RPE_DELTA, max_frames: int | None = None, progress: bool = True,
                 formats: tuple[str, ...] = ("tum",), config_label: str = "", report: bool = True,
-                notify=None):
+                notify=None, concurrent: bool = True):
     """Run the VO on an opened dataset and write the run folder (with plots and ``report.md``
     when ``report``). Returns (result, evaluation dict or None); a failed evaluation leaves
     ``result.evaluation_error`` set and no ``evaluation.json``."""
-    records: list[FrameRecord] = []
+    records: list[RecordWriter] = []  # landmarks.npz, streamed to disk: memory flat in the run's length
     view = None
     if rerun or spawn:
         from granite.visualization.run_view import RunView
@@ -128,11 +131,19 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
 
     def on_frame(frame, output):
         record = FrameRecord.from_output(frame.index, frame.timestamp, output)
-        records.append(record)
+        if not records:
+            records.append(RecordWriter(out / "landmarks.npz"))
+        records[0].append(record)
         if view is not None:
             view.log_frame(record, frame.image, output.diagnostics, frame.path)
 
-    result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames, notify=notify)
+    try:
+        result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames,
+                        notify=notify, concurrent=concurrent)
+    except BaseException:
+        for writer in records:
+            writer.discard()
+        raise
     evaluation = None
     if dataset.ground_truth is not None:
         try:
@@ -149,7 +160,10 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
     (out / "evaluation.json").unlink(missing_ok=True)
     if evaluation is not None:
         atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=2, allow_nan=False) + "\n")
-    write_records(out / "landmarks.npz", records)
+    if records:
+        records[0].close()
+    else:
+        write_records(out / "landmarks.npz", [])
     if report:
         write_run_report(out, result, dataset, evaluation, delta, config_label or "given",
                          title=f"granite run: {dataset.name}")
@@ -223,7 +237,8 @@ def run(args) -> int:
     dataset = open_dataset(args.dataset, calib_path=args.calib)
     result, evaluation = perform_run(dataset, config, args.out, args.rerun, args.spawn, args.delta,
                                      args.max_frames, progress=not args.quiet, formats=(args.format,),
-                                     config_label=config_name(args), notify=cli_notifier("run"))
+                                     config_label=config_name(args), notify=cli_notifier("run"),
+                                     concurrent=not args.sequential)
     for line in summary_lines(result, evaluation, args.delta):
         print(line)
     print(f"outputs: {args.out} (report: {args.out / 'report.md'})")

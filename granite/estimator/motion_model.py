@@ -60,11 +60,14 @@ class ConstantVelocityModel:
 
 
 def predicted_track_positions(model: ConstantVelocityModel, flow: FrameToFrameOpticalFlow,
-                              window: SlidingWindow, camera, timestamp: float
+                              window: SlidingWindow, camera, timestamp: float,
+                              known: tuple[np.ndarray, np.ndarray] | None = None,
                               ) -> tuple[np.ndarray, np.ndarray] | None:
     """``(track ids, pixels)`` where the frontend's current tracks should appear at
     ``timestamp`` under the predicted pose: tracks of landmarks with d > 0 by their depth, the
-    others by the infinite homography. None when there is no motion estimate yet."""
+    others by the infinite homography. None when there is no motion estimate yet. ``known``:
+    ``(ids, inverse distances)`` already read from the window in its current state, used
+    when the ids are the frontend's current ones."""
     if not model.has_motion:
         return None
     ids, uv = flow.current_tracks()
@@ -73,7 +76,10 @@ def predicted_track_positions(model: ConstantVelocityModel, flow: FrameToFrameOp
     T_w_old = model.last_pose
     T_old_w = se3_inverse(T_w_old)
     T_new_old = se3_inverse(model.predict(timestamp)) @ T_w_old
-    inv = window.landmarks.inverse_distances(ids)
+    if known is not None and np.array_equal(known[0], ids):
+        inv = known[1]
+    else:
+        inv = window.landmarks.inverse_distances(ids)
     depths = np.full(len(ids), np.nan)
     finite = np.flatnonzero(inv > 0.0)
     depths[finite] = window.landmark_points(ids[finite], T_old_w)[:, 2]

@@ -11,6 +11,9 @@ Arrays (flattened over frames, each row tagged with its frame index):
 
 from __future__ import annotations
 
+import shutil
+import tempfile
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,42 +37,104 @@ class FrameRecord:
 
     @classmethod
     def from_output(cls, index: int, timestamp: float, out) -> FrameRecord:
-        """From a :class:`granite.estimator.vo.FrameOutput`."""
+        """From a :class:`granite.estimator.vo.FrameOutput`. The window landmarks are kept as
+        float32, as ``landmarks.npz`` stores them (the bulk of a run's records: 1200 frames of
+        the spiral hold ~1 M landmark rows)."""
         rec = cls(index, timestamp, keyframe_ids=tuple(out.keyframe_ids),
-                  landmarks_w=out.landmarks_w, landmarks_inverse_distance=out.landmarks_inverse_distance)
+                  landmarks_w=np.asarray(out.landmarks_w, np.float32),
+                  landmarks_inverse_distance=np.asarray(out.landmarks_inverse_distance, np.float32))
         if out.tracks is not None and len(out.tracks):
             rec.track_ids, rec.track_uv = out.tracks.ids, out.tracks.positions
             rec.track_level, rec.track_inverse_distance = out.tracks.levels, out.track_inverse_distance
         return rec
 
 
-def write_records(path: str | Path, records: list[FrameRecord]) -> None:
-    def cat(name, dtype, shape):
-        parts = [np.asarray(getattr(r, name), dtype) for r in records]
-        return np.concatenate(parts) if parts else np.zeros(shape, dtype)
+#: The arrays of ``landmarks.npz``: name, dtype, shape of one row.
+_FIELDS = (
+    ("frame_index", np.int64, ()),
+    ("frame_timestamp", np.float64, ()),
+    ("track_frame", np.int64, ()),
+    ("track_id", np.int64, ()),
+    ("track_uv", np.float64, (2,)),
+    ("track_level", np.int64, ()),
+    ("track_inverse_distance", np.float64, ()),
+    ("landmark_frame", np.int64, ()),
+    ("landmark_xyz", np.float32, (3,)),
+    ("landmark_inverse_distance", np.float32, ()),
+    ("keyframe_frame", np.int64, ()),
+    ("keyframe_id", np.int64, ()),
+)
 
-    def tag(name):
-        return np.concatenate([np.full(len(getattr(r, name)), r.index, np.int64) for r in records]) \
-            if records else np.zeros(0, np.int64)
 
-    arrays = {
-        "frame_index": np.array([r.index for r in records], np.int64),
-        "frame_timestamp": np.array([r.timestamp for r in records], np.float64),
-        "track_frame": tag("track_ids"),
-        "track_id": cat("track_ids", np.int64, (0,)),
-        "track_uv": cat("track_uv", np.float64, (0, 2)).reshape(-1, 2),
-        "track_level": cat("track_level", np.int64, (0,)),
-        "track_inverse_distance": cat("track_inverse_distance", np.float64, (0,)),
-        "landmark_frame": tag("landmarks_inverse_distance"),
-        "landmark_xyz": cat("landmarks_w", np.float32, (0, 3)).reshape(-1, 3),
-        "landmark_inverse_distance": cat("landmarks_inverse_distance", np.float32, (0,)),
-        "keyframe_frame": tag("keyframe_ids"),
-        "keyframe_id": np.concatenate([np.array(r.keyframe_ids, np.int64) for r in records])
-        if records else np.zeros(0, np.int64),
+def _record_arrays(r: FrameRecord) -> dict[str, np.ndarray]:
+    """One record's rows of every array of ``landmarks.npz``."""
+    return {
+        "frame_index": np.array([r.index]),
+        "frame_timestamp": np.array([r.timestamp]),
+        "track_frame": np.full(len(r.track_ids), r.index),
+        "track_id": r.track_ids,
+        "track_uv": r.track_uv,
+        "track_level": r.track_level,
+        "track_inverse_distance": r.track_inverse_distance,
+        "landmark_frame": np.full(len(r.landmarks_inverse_distance), r.index),
+        "landmark_xyz": r.landmarks_w,
+        "landmark_inverse_distance": r.landmarks_inverse_distance,
+        "keyframe_frame": np.full(len(r.keyframe_ids), r.index),
+        "keyframe_id": np.array(r.keyframe_ids, np.int64),
     }
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as handle:
-            np.savez_compressed(handle, **arrays)
+
+
+class RecordWriter:
+    """Writes ``landmarks.npz`` without keeping the records in memory: :meth:`append` streams
+    each record's rows to temporary files beside ``path`` (the run folder), :meth:`close`
+    assembles the compressed npz from them (chunk by chunk) and removes them. Memory stays
+    flat in the length of the run; the arrays are those :func:`write_records` writes."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = tempfile.TemporaryDirectory(prefix=f".{self.path.stem}-", dir=self.path.parent)
+        folder = Path(self._tmp.name)
+        self._files = {name: open(folder / name, "wb") for name, _, _ in _FIELDS}
+        self._rows = {name: 0 for name, _, _ in _FIELDS}
+
+    def append(self, record: FrameRecord) -> None:
+        arrays = _record_arrays(record)
+        for name, dtype, row in _FIELDS:
+            a = np.ascontiguousarray(arrays[name], dtype=dtype).reshape((-1,) + row)
+            self._files[name].write(a.tobytes())
+            self._rows[name] += a.shape[0]
+
+    def discard(self) -> None:
+        """Remove the temporary files without writing ``path``."""
+        for f in self._files.values():
+            f.close()
+        self._tmp.cleanup()
+
+    def close(self) -> None:
+        """Write ``path`` (atomically) and remove the temporary files."""
+        try:
+            for f in self._files.values():
+                f.close()
+            folder = Path(self._tmp.name)
+            with atomic_path(self.path) as tmp:
+                with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
+                    for name, dtype, row in _FIELDS:
+                        header = {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
+                                  "fortran_order": False, "shape": (self._rows[name],) + row}
+                        with zf.open(name + ".npy", "w", force_zip64=True) as out, \
+                                open(folder / name, "rb") as src:
+                            np.lib.format.write_array_header_1_0(out, header)
+                            shutil.copyfileobj(src, out, 1 << 20)
+        finally:
+            self._tmp.cleanup()
+
+
+def write_records(path: str | Path, records: list[FrameRecord]) -> None:
+    writer = RecordWriter(path)
+    for r in records:
+        writer.append(r)
+    writer.close()
 
 
 def read_records(path: str | Path) -> list[FrameRecord]:

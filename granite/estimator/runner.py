@@ -34,7 +34,8 @@ from tqdm import tqdm
 from granite.errors import InputError
 from granite.estimator.config import VoConfig
 from granite.estimator.diagnostics import FrameDiagnostics, write_diagnostics
-from granite.estimator.vo import FrameOutput, MonocularVO
+from granite.estimator.pipeline import VoPipeline
+from granite.estimator.vo import MonocularVO
 from granite.io import Dataset, atomic_write_text, write_kitti_poses, write_tum
 from granite.optical_flow.frame_to_frame import FrameRejectedWarning
 from granite.trajectory import Trajectory
@@ -151,10 +152,14 @@ def run_vo(
     on_frame=None,
     max_frames: int | None = None,
     notify=None,
+    concurrent: bool = True,
 ) -> RunResult:
     """Process the dataset frame by frame. ``on_frame(frame, output)`` is called after each
     frame (used by the rerun logger); ``notify(text)`` shows the first warning of each kind
-    (default: a :class:`RunWarning`). Ctrl-C stops early and returns what was processed."""
+    (default: a :class:`RunWarning`). Ctrl-C stops early and returns what was processed.
+    ``concurrent``: the frontend of the next frame runs while the estimator works on this one
+    (:mod:`granite.estimator.pipeline`; bit-identical results), else one frame after the
+    other (``granite run --sequential``)."""
     check_dataset(dataset)
     camera = dataset.calibration.camera()
     vo = MonocularVO(camera, config)
@@ -164,11 +169,15 @@ def run_vo(
     n = len(dataset) if max_frames is None else min(max_frames, len(dataset))
     bar = tqdm(total=n, desc=f"granite run {dataset.name}", unit="frame", disable=not progress)
     tally = WarningTally(notify)
+    outputs = VoPipeline(vo, concurrent).run(dataset.frames(0, n))
     try:
-        for frame in dataset.frames(0, n):
+        while True:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                out: FrameOutput = vo.process(frame.index, frame.timestamp, frame.image)
+                item = next(outputs, None)
+            if item is None:
+                break
+            frame, out = item
             numerical = 0
             for record in caught:
                 if issubclass(record.category, FrameRejectedWarning):
@@ -200,6 +209,7 @@ def run_vo(
     except KeyboardInterrupt:
         interrupted = True
     finally:
+        outputs.close()
         bar.close()
     if not diags:
         raise InputError("no frame was processed", dataset.root)

@@ -90,6 +90,9 @@ class MonocularVO:
         #: least ``scene_distance_min_points`` of them: the scale a re-initialisation carries over.
         self._scene_distance: float | None = None
         self._previous_frame: int | None = None
+        #: (track ids, their inverse distances) of the last estimated frame, in the window's
+        #: state at the end of :meth:`estimate` (valid until the next one)
+        self._track_inverse_distances: tuple[np.ndarray, np.ndarray] | None = None
         self.keyframe_log: list[tuple[int, int]] = []  # (frame id, sub-map) of every keyframe
         self.export_landmarks = False  # fill FrameOutput.landmarks_w (costs ~1 ms per frame)
 
@@ -218,15 +221,29 @@ class MonocularVO:
         return negative_entropy, inserted
 
     # ----------------------------------------------------------------------------- main
+    def predict_tracks(self, timestamp: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The frontend's guesses for a frame at ``timestamp`` (motion-guided tracking): the
+        only data that flows from the estimator back into the frontend."""
+        if not self.config.estimator.motion_guided_tracking:
+            return None
+        return predicted_track_positions(self.motion, self.flow, self.window, self.camera, timestamp,
+                                         self._track_inverse_distances)
+
     def process(self, frame_id: int, timestamp: float, image: np.ndarray | None) -> FrameOutput:
         """Process one frame; ``image`` None marks a missing or corrupt image (skipped)."""
         start = time.perf_counter()
-        est = self.config.estimator
         if image is None:
             return self._skipped(timestamp, frame_id, None, None)
-        predicted = predicted_track_positions(self.motion, self.flow, self.window, self.camera,
-                                              timestamp) if est.motion_guided_tracking else None
-        tracks = self.flow.process(timestamp, image, predicted=predicted)
+        tracks = self.flow.process(timestamp, image, predicted=self.predict_tracks(timestamp))
+        return self.finish(self.estimate(frame_id, timestamp, image, tracks, start))
+
+    def estimate(self, frame_id: int, timestamp: float, image: np.ndarray,
+                 tracks: OpticalFlowResult, start: float):
+        """The estimator's part of :meth:`process` given the frame's tracks, up to the state
+        the next frame's :meth:`predict_tracks` reads (optimisation, keyframes, restart,
+        marginalisation, motion model). Returns what :meth:`finish` needs, or the finished
+        :class:`FrameOutput` of a skipped frame."""
+        est = self.config.estimator
         if tracks.rejected is not None:  # blank / wrong size: the frontend kept its last frame
             return self._skipped(timestamp, frame_id, tracks, start)
         self._tracks[frame_id] = FrameTracks.from_result(tracks)
@@ -283,8 +300,22 @@ class MonocularVO:
             self.motion.update(T_w_c, timestamp, measure_motion=self._previous_frame is not None
                                and self.state is MapState.MAPPED and not initialized)
             self._previous_frame = frame_id
-
+        # inverse distances of the frame's tracks in the final state: the frame's output, and
+        # the depths of the next frame's prediction (the same ids and state)
         inv = win.landmarks.inverse_distances(tracks.ids)
+        self._track_inverse_distances = (tracks.ids, inv)
+        return (start, timestamp, frame_id, tracks, status, submap, finite, infinite, keyframe_taken,
+                negative_entropy, drift, T_w_c, inv)
+
+    def finish(self, estimated) -> FrameOutput:
+        """The rest of :meth:`process` after :meth:`estimate`: the frame's outputs. Reads the
+        window, changes nothing that the next frame's tracking depends on (so the next frame's
+        tracking may run meanwhile)."""
+        if isinstance(estimated, FrameOutput):
+            return estimated
+        (start, timestamp, frame_id, tracks, status, submap, finite, infinite, keyframe_taken,
+         negative_entropy, drift, T_w_c, inv) = estimated
+        est, win = self.config.estimator, self.window
         if status in (FrameStatus.TRACKING, FrameStatus.REINIT):
             seen = inv[inv > 0.0]
             if len(seen) >= est.scene_distance_min_points:

@@ -18,6 +18,7 @@ fails the forward-backward check. Without a prediction the behaviour is the refe
 
 from __future__ import annotations
 
+import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -66,6 +67,73 @@ class OpticalFlowResult:
         return int(self.ids.shape[0])
 
 
+@dataclass(frozen=True)
+class PreparedImage:
+    """What :meth:`FrameToFrameOpticalFlow.prepare` computes from an image alone."""
+
+    image: np.ndarray | None
+    pyramid: ImagePyramid | None
+    noise: float
+    #: the image is not a 2-D uint8 / uint16 array (why), else None
+    rejected: str | None
+    blank: bool
+    ms: float
+
+
+class FlowJob:
+    """The tracking and detection of one frame (:meth:`FrameToFrameOpticalFlow.begin`): pure
+    work on arrays that no one else writes until :meth:`FrameToFrameOpticalFlow.complete`.
+    :meth:`run` does it (in any thread, once: the first caller); :meth:`wait` returns when it
+    is done (running it itself when no thread has started it)."""
+
+    def __init__(self, timestamp: float, prepared: PreparedImage, rejected: str | None):
+        self.timestamp = timestamp
+        self.prepared = prepared
+        self.rejected = rejected
+        self.track = None
+        self.cache = None
+        self.inputs = None
+        self.config = None
+        self.output = None
+        self.rows = None
+        self.timing: dict[str, float] = {}
+        self._done = threading.Event()
+        self._error: BaseException | None = None
+        self._claim = threading.Lock()  # held by the thread that runs the job
+
+    def run(self) -> None:
+        if self.rejected is not None or not self._claim.acquire(blocking=False):
+            return  # nothing to do, or done / being done by another thread
+        try:
+            t1 = time.perf_counter()
+            ids, points, levels, angles = self.inputs
+            if self.track is not None:
+                new_points, dtheta, status = self.track()
+                ids, points, levels = ids[status], new_points[status], levels[status]
+                angles = angles[status] + dtheta[status]
+                self.rows = np.flatnonzero(status)
+            else:
+                ids, points, levels, angles = ids[:0], points[:0], levels[:0], angles[:0]
+                self.rows = np.zeros(0, dtype=np.int64)
+            t2 = time.perf_counter()
+            det_points, det_levels = detect_new_points(self.prepared.pyramid, self.config, points, levels)
+            t3 = time.perf_counter()
+            self.output = (ids, points, levels, angles, det_points, det_levels)
+            self.timing = {"tracking": 1e3 * (t2 - t1), "detection": 1e3 * (t3 - t2)}
+        except BaseException as exc:  # re-raised by wait() in the caller's thread
+            self._error = exc
+        finally:
+            self._done.set()
+
+    def wait(self) -> None:
+        if self.rejected is not None:
+            return
+        self.run()  # here, unless a thread has taken it already
+        self._done.wait()
+        if self._error is not None:
+            raise self._error
+
+
 class FrameToFrameOpticalFlow:
     """The frontend. ``image_size`` = (width, height); if None, the first accepted frame sets it."""
 
@@ -109,11 +177,30 @@ class FrameToFrameOpticalFlow:
         self._cache = new_template_cache(0, self.config.levels, len(self._pattern))
         self._rows = np.zeros(0, dtype=np.int64)
 
+    def prepare(self, image: np.ndarray | None) -> PreparedImage:
+        """The part of :meth:`process` that depends on the image alone: type and blank checks,
+        the pyramid and the noise estimate. Reads no tracker state, so it may run ahead of
+        time in another thread (the pyramid and noise kernels release the GIL)."""
+        t0 = time.perf_counter()
+        reason = self._check_type(image)
+        if reason is not None:
+            return PreparedImage(image, None, 0.0, reason, False, 0.0)
+        assert image is not None
+        blank = image.size == 0 or bool(image.min() == image.max())
+        if blank:
+            return PreparedImage(image, None, 0.0, None, True, 0.0)
+        cfg = self.config
+        pyramid = build_pyramid(image, cfg.levels, cfg.presmooth_sigma)
+        noise = estimate_noise(image, stride=4) if self._needs_noise else 0.0
+        return PreparedImage(image, pyramid, noise, None, False, 1e3 * (time.perf_counter() - t0))
+
     def process(
         self,
         timestamp: float,
         image: np.ndarray | None,
         predicted: tuple[np.ndarray, np.ndarray] | None = None,
+        prepared: PreparedImage | None = None,
+        executor=None,
     ) -> OpticalFlowResult:
         """Track into ``image`` (2-D uint8 or uint16) and detect new points.
 
@@ -126,71 +213,90 @@ class FrameToFrameOpticalFlow:
         ``config.guess_min_zncc``); if that fails it is tracked as without a prediction
         (zero motion, then the median-flow retry). ``None`` (or K = 0) gives the unguided
         result, bit for bit.
+
+        ``prepared``: :meth:`prepare` of ``image``, when done already. ``executor``: a
+        ``concurrent.futures`` executor with a free worker, over which the tracking kernel
+        splits its points (bit-identical results). ``process`` = :meth:`begin` then
+        :meth:`complete`.
         """
-        t0 = time.perf_counter()
-        reason = self._check(image)
+        job = self.begin(timestamp, image if prepared is None else prepared, predicted, executor)
+        job.run()
+        return self.complete(job)
+
+    def begin(self, timestamp: float, image, predicted=None, executor=None) -> FlowJob:
+        """The first half of :meth:`process`: the checks that need the tracker (image size),
+        the guesses and the inputs of the tracking. ``image``: an image or its
+        :class:`PreparedImage`. The returned job's :meth:`FlowJob.run` (tracking and detection:
+        numba kernels and OpenCV, no tracker state) may then run in another thread while the
+        caller works on other data; :meth:`complete` must follow before the next ``begin``
+        (it waits for ``run``). Nothing of the tracker changes before :meth:`complete`, except
+        the choice of the template storage the job writes."""
+        prep = image if isinstance(image, PreparedImage) else self.prepare(image)
+        reason = prep.rejected
+        if reason is None and self.image_size is not None:
+            h, w = prep.image.shape
+            if (w, h) != self.image_size:
+                reason = f"image size {w}x{h} differs from {self.image_size[0]}x{self.image_size[1]}"
+        if reason is None and prep.blank:
+            reason = "blank image (constant intensity)"
         if reason is not None:
-            warnings.warn(f"frame at t={timestamp:.6f}: {reason}; no tracks", FrameRejectedWarning, stacklevel=2)
-            return self._empty(timestamp, reason)
-        assert image is not None
+            return FlowJob(float(timestamp), prep, reason)
         if self.image_size is None:
-            self.image_size = (image.shape[1], image.shape[0])
-
+            self.image_size = (prep.image.shape[1], prep.image.shape[0])
         cfg = self.config
-        pyramid = build_pyramid(image, cfg.levels, cfg.presmooth_sigma)
-        noise = estimate_noise(image, stride=4) if self._needs_noise else 0.0
-        t1 = time.perf_counter()
-
-        ids, points, levels, angles = self._ids, self._points, self._levels, self._angles
-        cache = self._take_cache(len(ids))
-        rows = np.zeros(0, dtype=np.int64)
+        job = FlowJob(float(timestamp), prep, None)
+        ids = self._ids
+        job.cache = self._take_cache(len(ids))
         if self._pyramid is not None and len(ids):
-            prev = self._pyramid
             guess = self._guess(predicted)
             fb_var = None
             if cfg.fb_noise_factor > 0.0:
-                fb_var = cfg.fb_noise_factor**2 * (self._noise**2 + noise**2) * self._gains**2
-            new_points, dtheta, status = track_points(
-                prev.data, prev.offsets, prev.widths, prev.heights,
-                pyramid.data, pyramid.offsets, pyramid.widths, pyramid.heights,
-                points, levels, self._rows, *self._cache, *cache,
-                self._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow,
-                guess=guess, min_zncc_guess=cfg.guess_min_zncc,
-                order=pass_order(guess is not None, cfg.local_retry_rounds),
-                local_neighbours=cfg.local_retry_neighbours,
-                fb_var=fb_var, fb_max_sq=cfg.fb_max_sq,
-            )
-            ids, points, levels = ids[status], new_points[status], levels[status]
-            angles = angles[status] + dtheta[status]
-            rows = np.flatnonzero(status)
-        else:
-            ids, points, levels, angles = ids[:0], points[:0], levels[:0], angles[:0]
-        t2 = time.perf_counter()
+                fb_var = cfg.fb_noise_factor**2 * (self._noise**2 + prep.noise**2) * self._gains**2
+            prev, pyramid = self._pyramid, prep.pyramid
+            points, levels, rows, cache_a, cache_b = self._points, self._levels, self._rows, self._cache, job.cache
 
-        det_points, det_levels = detect_new_points(pyramid, cfg, points, levels)
+            def track():
+                return track_points(
+                    prev.data, prev.offsets, prev.widths, prev.heights,
+                    pyramid.data, pyramid.offsets, pyramid.widths, pyramid.heights,
+                    points, levels, rows, *cache_a, *cache_b,
+                    self._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow,
+                    guess=guess, min_zncc_guess=cfg.guess_min_zncc,
+                    order=pass_order(guess is not None, cfg.local_retry_rounds),
+                    local_neighbours=cfg.local_retry_neighbours,
+                    fb_var=fb_var, fb_max_sq=cfg.fb_max_sq, executor=executor,
+                )
+            job.track = track
+        job.inputs = (self._ids, self._points, self._levels, self._angles)
+        job.config = cfg
+        return job
+
+    def complete(self, job: FlowJob) -> OpticalFlowResult:
+        """The second half of :meth:`process`: wait for the job's tracking and detection, then
+        update the tracker and return the frame's result (warns on a rejected frame)."""
+        if job.rejected is not None:
+            warnings.warn(f"frame at t={job.timestamp:.6f}: {job.rejected}; no tracks",
+                          FrameRejectedWarning, stacklevel=3)
+            return self._empty(job.timestamp, job.rejected)
+        job.wait()
+        ids, points, levels, angles, det_points, det_levels = job.output
         n_new = len(det_points)
         det_ids = np.arange(self._next_id, self._next_id + n_new, dtype=np.int64)
         self._next_id += n_new
-        t3 = time.perf_counter()
-
-        self._pyramid = pyramid
-        self._noise = noise
-        self._cache = cache
-        self._rows = np.concatenate([rows, np.full(n_new, -1, dtype=np.int64)])
+        self._pyramid = job.prepared.pyramid
+        self._noise = job.prepared.noise
+        self._cache = job.cache
+        self._rows = np.concatenate([job.rows, np.full(n_new, -1, dtype=np.int64)])
         self._ids = np.concatenate([ids, det_ids])
         self._points = np.concatenate([points, det_points])
         self._levels = np.concatenate([levels, det_levels])
         self._angles = np.concatenate([angles, np.zeros(n_new)])
         new = np.zeros(len(self._ids), dtype=bool)
         new[len(ids):] = True
-        timing = {
-            "pyramid": 1e3 * (t1 - t0),
-            "tracking": 1e3 * (t2 - t1),
-            "detection": 1e3 * (t3 - t2),
-            "total": 1e3 * (t3 - t0),
-        }
+        timing = {"pyramid": job.prepared.ms, **job.timing}
+        timing["total"] = timing["pyramid"] + timing["tracking"] + timing["detection"]
         return OpticalFlowResult(
-            timestamp=float(timestamp),
+            timestamp=job.timestamp,
             ids=self._ids.copy(),
             positions=self._points.copy(),
             levels=self._levels.copy(),
@@ -239,18 +345,14 @@ class FrameToFrameOpticalFlow:
         cache[0][:] = -1
         return cache
 
-    def _check(self, image: np.ndarray | None) -> str | None:
+    @staticmethod
+    def _check_type(image: np.ndarray | None) -> str | None:
         if image is None:
             return "no image"
         if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype not in SUPPORTED_DTYPES:
             shape = getattr(image, "shape", None)
             dtype = getattr(image, "dtype", type(image).__name__)
             return f"expected a 2-D uint8 or uint16 image, got {dtype} with shape {shape}"
-        h, w = image.shape
-        if self.image_size is not None and (w, h) != self.image_size:
-            return f"image size {w}x{h} differs from {self.image_size[0]}x{self.image_size[1]}"
-        if image.size == 0 or image.min() == image.max():
-            return "blank image (constant intensity)"
         return None
 
     def _empty(self, timestamp: float, reason: str) -> OpticalFlowResult:

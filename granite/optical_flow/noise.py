@@ -70,7 +70,7 @@ def _select(values, k):
     return values[k]
 
 
-@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+@njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _noise_sigma(image, stride):
     h, w = image.shape
     ny = (h - 2 + stride - 1) // stride

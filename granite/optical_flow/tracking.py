@@ -166,7 +166,7 @@ def track_points(
     st_b, data_b, valid_b, jac_b, aux_b,
     pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
     guess=None, order=None, min_zncc_guess=0.9, local_neighbours=8,
-    fb_var=None, fb_max_sq=np.inf,
+    fb_var=None, fb_max_sq=np.inf, executor=None,
 ):
     """Track all points of image A into image B with a forward-backward check.
 
@@ -208,6 +208,11 @@ def track_points(
             and the one above only. Needs at least 3 tracked points; guesses shorter than
             1 px, or within 2 px of where the point's earlier forward attempt ended, are
             skipped.
+        executor: optional ``concurrent.futures`` executor with a free worker thread: the
+            leading guided and zero-motion passes (per point independent) of the first half
+            of the points run there while the calling thread does the second half (the
+            kernels release the GIL); the median and local-flow passes follow over all
+            points. The results are bit-identical to a call without it.
     Returns:
         (new_points (N, 2), theta (N,), status (N,) bool): status is True when the point was
         tracked A -> B and back B -> A to within ``fb_threshold_sq`` (squared distance in
@@ -227,17 +232,44 @@ def track_points(
     fb_var = np.zeros(n_levels) if fb_var is None else np.ascontiguousarray(fb_var, dtype=np.float64)
     if fb_var.shape != (n_levels,):
         raise ValueError(f"fb_var must have shape ({n_levels},), got {fb_var.shape}")
-    return _track_points(
+    order = np.ascontiguousarray(order, dtype=np.int64)
+    args = (
         buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
         points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
         st_b, data_b, valid_b, jac_b, aux_b,
-        pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
-        guess, np.asarray(order, dtype=np.int64), min_zncc_guess, int(local_neighbours),
-        fb_var, float(fb_max_sq),
-    )[:3]
+        pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess,
+    )
+    tail = (float(min_zncc_guess), int(local_neighbours), fb_var, float(fb_max_sq))
+    n = points.shape[0]
+    if executor is None or n < _MIN_SPLIT:
+        return _track_points(*args, order, *tail)[:3]
+    state = _pass_state(n)
+    m = independent_passes(order)
+    half = n // 2
+    first = executor.submit(_track_passes, *args, order[:m], *tail, 0, half, *state)
+    try:
+        _track_passes(*args, order[:m], *tail, half, n, *state)
+    finally:
+        first.result()
+    _track_passes(*args, order[m:], *tail, 0, n, *state)
+    out, theta, status = state[:3]
+    return out, theta, status
 
 
-@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+#: Fewer points than this are tracked in one thread (splitting costs ~0.1 ms).
+_MIN_SPLIT = 32
+
+
+def independent_passes(order: np.ndarray) -> int:
+    """Number of leading passes of ``order`` that treat each point on its own (guided and
+    zero-motion passes): those may be split over disjoint point ranges."""
+    m = 0
+    while m < len(order) and int(order[m]) in (PASS_ZERO, PASS_GUESS):
+        m += 1
+    return m
+
+
+@njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
 def _track_points(
     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
@@ -248,17 +280,45 @@ def _track_points(
     """Kernel of :func:`track_points` (``guess`` (N, 2) or (0, 2) for none). Also returns
     the ZNCC of each point's last guided forward match (-2: none)."""
     n = points.shape[0]
+    out, theta, status, tried, score, local = _pass_state(n)
+    _track_passes(
+        buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+        points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
+        st_b, data_b, valid_b, jac_b, aux_b,
+        pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
+        local_neighbours, fb_var, fb_max_sq, 0, n, out, theta, status, tried, score, local,
+    )
+    return out, theta, status, score
+
+
+@njit(cache=True, nogil=True)
+def _pass_state(n):
+    """Per-point state of the passes: ``out`` (N, 2), ``theta``, ``status``, ``tried``,
+    ``score`` and the local-flow guesses ``local`` (N, 2)."""
+    return (np.empty((n, 2)), np.zeros(n), np.zeros(n, dtype=np.bool_), np.zeros(n, dtype=np.bool_),
+            np.full(n, -2.0), np.full((n, 2), np.nan))
+
+
+@njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _track_passes(
+    buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+    points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
+    st_b, data_b, valid_b, jac_b, aux_b,
+    pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
+    local_neighbours, fb_var, fb_max_sq, k0, k1, out, theta, status, tried, score, local,
+):
+    """The passes ``order`` of :func:`_track_points` for the points ``k0 <= k < k1``, on the
+    per-point state (``out``, ``theta``, ``status``, ``tried``, ``score``, ``local``, all N
+    rows, updated in place). A zero-motion or guided pass of one point reads and writes only
+    that point's rows (its template rows ``rows_a[k]`` in A and ``k`` in B included), so
+    disjoint ranges of such passes may run concurrently, with results identical to one call
+    over all points; the median and local-flow passes read every point's state."""
+    n = points.shape[0]
     n_levels = offs_a.shape[0]
     p = pattern.shape[0]
     has_guess = guess.shape[0] == n and n > 0
-    out = np.empty((n, 2))
-    theta = np.zeros(n)
-    status = np.zeros(n, dtype=np.bool_)
-    tried = np.zeros(n, dtype=np.bool_)
-    score = np.full(n, -2.0)
     st_s, data_s, valid_s, jac_s, aux_s = template_workspace(n_levels, p)
     radius = pattern_radius(pattern)
-    local = np.full((n, 2), np.nan)
     for mode in order:
         flow_x = 0.0
         flow_y = 0.0
@@ -286,7 +346,7 @@ def _track_points(
             flow_y = np.median(dy)
             if flow_x * flow_x + flow_y * flow_y < retry_min_flow * retry_min_flow:
                 continue
-        for k in range(n):
+        for k in range(k0, k1):
             if status[k]:
                 continue
             per_point = mode == PASS_GUESS or mode == PASS_LOCAL
@@ -357,4 +417,3 @@ def _track_points(
                 mean = float(a[4, 0])
                 limit_sq = min(max(fb_var[lvl] * translation_lambda_max(a) / (mean * mean), fb_threshold_sq), fb_max_sq)
             status[k] = dist_sq < limit_sq
-    return out, theta, status, score

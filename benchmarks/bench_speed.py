@@ -1,0 +1,137 @@
+"""Speed and memory of the VO: sequential against concurrent (issue 15).
+
+    python benchmarks/bench_speed.py [DATASET ...] [--repeats 2] [--frames N] [--json FILE]
+
+Default datasets: the 640x480 bench renders ``runs/bench/*_640x480_*`` (of this checkout, else
+of ``/work/main``) and ``assets/sequences/*``. Per dataset and mode (``seq``: ``granite run
+--sequential``, one thread; ``conc``: the default concurrent pipeline,
+:mod:`granite.estimator.pipeline`) a fresh process
+
+1. runs ``run_vo`` as ``granite run`` does (images decoded from disk, per-frame records kept
+   for ``landmarks.npz``; no evaluation, no files), which also warms the numba cache, and
+   reads the peak RSS (``ru_maxrss``) after it;
+2. loads the images into memory and times the VO alone ``--repeats`` times (the best run is
+   printed): wall ms per frame and frames/s, process CPU ms per frame (``time.process_time``),
+   CPU utilisation = CPU time / wall time (1.0 = one core busy), and in the concurrent mode the
+   CPU time of the caller's thread (the estimator; ``time.thread_time``) and the wall time it
+   waited for the frontend (the tracking of the next frame).
+
+On a loaded machine wall times (frames/s) depend on the other processes: the CPU times are the
+figures to compare, and the load average is printed with each row. Results also go to
+``--json`` (default ``runs/bench/bench_speed.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as `granite run`
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def default_datasets() -> list[Path]:
+    bench = ROOT / "runs" / "bench"
+    if not any(bench.glob("*_640x480_*")):
+        bench = Path("/work/main/runs/bench")
+    found = sorted(p for p in bench.glob("*_640x480_*") if (p / "mav0").is_dir())
+    found += sorted(p for p in (ROOT / "assets" / "sequences").iterdir() if (p / "mav0").is_dir())
+    return found
+
+
+def worker(dataset_path: str, mode: str, repeats: int, frames: int | None) -> dict:
+    """One dataset in one mode, in this (fresh) process."""
+    import numpy as np
+
+    from granite.estimator.config import VoConfig
+    from granite.estimator.pipeline import VoPipeline
+    from granite.estimator.records import FrameRecord
+    from granite.estimator.runner import run_vo
+    from granite.estimator.vo import MonocularVO
+    from granite.io import open_dataset
+
+    concurrent = mode == "conc"
+    rss_start = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    dataset = open_dataset(dataset_path)
+    n = len(dataset) if frames is None else min(frames, len(dataset))
+    records = []
+    t0, c0 = time.perf_counter(), time.process_time()
+    run_vo(dataset, VoConfig(), progress=False, max_frames=n, concurrent=concurrent,
+           on_frame=lambda f, out: records.append(FrameRecord.from_output(f.index, f.timestamp, out)))
+    run_wall, run_cpu = time.perf_counter() - t0, time.process_time() - c0
+    rss_run = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    del records
+
+    loaded = list(dataset.frames(0, n))
+    best = None
+    for _ in range(repeats):
+        vo = MonocularVO(dataset.calibration.camera(), VoConfig())
+        vo.export_landmarks = True  # as run_vo
+        pipe = VoPipeline(vo, concurrent)
+        t0, c0, m0 = time.perf_counter(), time.process_time(), time.thread_time()
+        poses = [out.T_w_c for _, out in pipe.run(loaded)]
+        wall, cpu, main = time.perf_counter() - t0, time.process_time() - c0, time.thread_time() - m0
+        row = {"wall_ms": 1e3 * wall / n, "cpu_ms": 1e3 * cpu / n, "utilisation": cpu / wall,
+               "fps": n / wall, "caller_cpu_ms": 1e3 * (pipe.caller_cpu if concurrent else main) / n,
+               "waited_tracker_ms": 1e3 * pipe.waited_tracker / n,
+               "poses_checksum": float(np.sum(np.abs(np.array(poses))))}
+        if best is None or row["wall_ms"] < best["wall_ms"]:
+            best = row
+    return {"dataset": str(dataset_path), "mode": mode, "frames": n, "size": f"{dataset.calibration.width}x"
+            f"{dataset.calibration.height}", "run_ms": 1e3 * run_wall / n, "run_cpu_ms": 1e3 * run_cpu / n,
+            "rss_start_mb": rss_start, "peak_rss_mb": rss_run, "load": os.getloadavg()[0], **best}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("datasets", nargs="*", type=Path)
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--frames", type=int, help="first N frames only")
+    parser.add_argument("--modes", nargs="+", default=["seq", "conc"], choices=["seq", "conc"])
+    parser.add_argument("--json", type=Path, default=ROOT / "runs" / "bench" / "bench_speed.json")
+    parser.add_argument("--worker", nargs=2, metavar=("DATASET", "MODE"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        print(json.dumps(worker(args.worker[0], args.worker[1], args.repeats, args.frames)))
+        return 0
+
+    datasets = args.datasets or default_datasets()
+    print(f"{os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.1f}")
+    header = (f"{'dataset':34s} {'mode':4s} {'frames':>6s} {'fps':>6s} {'wall ms':>8s} {'CPU ms':>7s} "
+              f"{'util':>5s} {'estim. CPU ms':>13s} {'waited ms':>9s} {'peak RSS MB':>11s} {'load':>5s}")
+    print(header)
+    rows = []
+    for ds in datasets:
+        for mode in args.modes:
+            cmd = [sys.executable, __file__, "--worker", str(ds), mode, "--repeats", str(args.repeats)]
+            if args.frames:
+                cmd += ["--frames", str(args.frames)]
+            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+            if proc.returncode != 0:
+                print(f"{ds.name}: {mode} failed:\n{proc.stderr[-2000:]}")
+                continue
+            row = json.loads(proc.stdout.strip().splitlines()[-1])
+            rows.append(row)
+            waited = f"{row['waited_tracker_ms']:9.2f}" if mode == "conc" else f"{'':9s}"
+            print(f"{Path(row['dataset']).name + ' ' + row['size']:34s} {mode:4s} {row['frames']:6d} "
+                  f"{row['fps']:6.1f} {row['wall_ms']:8.2f} {row['cpu_ms']:7.2f} {row['utilisation']:5.2f} "
+                  f"{row['caller_cpu_ms']:13.2f} {waited} {row['peak_rss_mb']:11.0f} {row['load']:5.1f}",
+                  flush=True)
+        pair = [r for r in rows if r["dataset"] == str(ds)]
+        if len(pair) == 2 and pair[0]["poses_checksum"] != pair[1]["poses_checksum"]:
+            print(f"  WARNING: {ds.name}: sequential and concurrent trajectories differ")
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(rows, indent=2) + "\n")
+    print(f"results: {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,187 @@
+"""Drive :class:`~granite.estimator.vo.MonocularVO` over a stream of frames, sequentially or with
+the frontend concurrent to the estimator (two cores), with bit-identical results.
+
+What flows between frontend and estimator: the frontend's tracks of frame k go to the estimator;
+the only feedback is motion-guided tracking (``[estimator] motion_guided_tracking``, ours, on by
+default): frame k+1 is tracked from positions predicted with the estimator's state after frame
+k (the constant-velocity pose and the window's landmark depths). The reference (feedback off)
+runs its optical flow in a thread of its own that feeds the estimator through a queue.
+
+The concurrent pipeline (``concurrent=True``) has three helper threads besides the caller's:
+
+* the **reader** decodes frame k+1 (and k+2: a queue of ``prefetch`` frames) and builds its
+  image pyramid and noise estimate (:meth:`FrameToFrameOpticalFlow.prepare
+  <granite.optical_flow.FrameToFrameOpticalFlow.prepare>`, OpenCV and GIL-free numba kernels)
+  while the estimator works on frame k;
+* the **tracker** tracks the points into frame k+1 and detects new corners
+  (:class:`~granite.optical_flow.frame_to_frame.FlowJob`), splitting the points with
+* the **helper**, which runs the first half of the points' guided / zero-motion passes (the
+  kernel is per point independent there; the median and local passes follow over all points).
+
+The tracking of frame k+1 starts as soon as its inputs exist: with motion-guided tracking right
+after the estimator's state of frame k is final (:meth:`MonocularVO.estimate`: optimisation,
+keyframe, marginalisation, motion model), so it overlaps the rest of frame k
+(:meth:`MonocularVO.finish`: outputs, the exported landmarks) and whatever the caller does with
+the output (records, rerun logging); without the feedback right after frame k's tracks are
+known, so it overlaps the whole estimator of frame k, as in the reference. Every piece of
+state is written by one thread at a time in the sequential order of the operations, and every
+computation gets the same inputs as in the sequential mode, so trajectories, diagnostics and
+tracks are bit-identical (``tests/test_pipeline.py``); ``concurrent=False`` (``granite run
+--sequential``) is the plain loop over :meth:`MonocularVO.process`, kept for debugging.
+
+Warnings: the caller (``runner.run_vo``) records the warnings raised while it waits for each
+frame's output. The frontend work started early for frame k+1 on the caller's thread (its
+prediction and guesses) records its warnings and re-issues them with frame k+1; the helper
+threads run only numba kernels, OpenCV and small numpy operations, which issue none.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+import warnings
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+
+from granite.estimator.vo import FrameOutput, MonocularVO
+
+_END = object()
+
+
+class _Failure:
+    def __init__(self, error: BaseException):
+        self.error = error
+
+
+class VoPipeline:
+    """``run(frames)`` yields ``(frame, FrameOutput)`` per frame; a frame is anything with
+    ``index``, ``timestamp`` and ``image`` (None: missing or unreadable) attributes, e.g.
+    :class:`granite.io.Frame`."""
+
+    def __init__(self, vo: MonocularVO, concurrent: bool = True, prefetch: int = 2):
+        self.vo = vo
+        self.concurrent = concurrent
+        self.prefetch = max(1, int(prefetch))
+        #: wall seconds the caller's thread waited for the reader and for the tracker, and
+        #: its CPU seconds (``time.thread_time``) inside :meth:`run` (concurrent mode)
+        self.waited_reader = 0.0
+        self.waited_tracker = 0.0
+        self.caller_cpu = 0.0
+
+    def run(self, frames: Iterable) -> Iterator[tuple[object, FrameOutput]]:
+        if not self.concurrent:
+            vo = self.vo
+            for frame in frames:
+                yield frame, vo.process(frame.index, frame.timestamp, frame.image)
+            return
+        yield from self._run_concurrent(frames)
+
+    # ------------------------------------------------------------------ concurrent
+    def _reader(self, frames: Iterable, out: queue.Queue, stop: threading.Event) -> None:
+        flow = self.vo.flow
+        try:
+            for frame in frames:
+                prep = None if frame.image is None else flow.prepare(frame.image)
+                while not stop.is_set():
+                    try:
+                        out.put((frame, prep), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            item = _END
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
+            item = _Failure(exc)
+        while not stop.is_set():
+            try:
+                out.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def _run_concurrent(self, frames: Iterable) -> Iterator[tuple[object, FrameOutput]]:
+        vo, flow = self.vo, self.vo.flow
+        guided = vo.config.estimator.motion_guided_tracking
+        items: queue.Queue = queue.Queue(maxsize=self.prefetch)
+        stop = threading.Event()
+        reader = threading.Thread(target=self._reader, args=(frames, items, stop),
+                                  name="granite-reader", daemon=True)
+        tracker = ThreadPoolExecutor(1, thread_name_prefix="granite-tracker")
+        helper = ThreadPoolExecutor(1, thread_name_prefix="granite-helper")
+
+        def take():
+            t = time.perf_counter()
+            item = items.get()
+            self.waited_reader += time.perf_counter() - t
+            if isinstance(item, _Failure):
+                raise item.error
+            return item
+
+        def launch(item):
+            """Begin the frontend of the frame ``item`` now, on the caller's thread (its
+            warnings kept for that frame), and run its tracking on the tracker thread."""
+            frame, prep = item
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp), helper)
+            if job.rejected is None:
+                tracker.submit(job.run)
+            return frame, job, caught
+
+        reader.start()
+        pending = None  # (frame, job, warnings) of the next frame, begun early
+        cpu = time.thread_time()
+        try:
+            item = take()
+            while item is not _END:
+                frame, prep = item
+                start = time.perf_counter()
+                if frame.image is None:  # skipped: changes no state
+                    out = vo.process(frame.index, frame.timestamp, None)
+                    item = take()
+                    self.caller_cpu += time.thread_time() - cpu
+                    yield frame, out
+                    cpu = time.thread_time()
+                    continue
+                if pending is not None and pending[0] is frame:
+                    _, job, caught = pending
+                    for w in caught:
+                        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno,
+                                               source=w.source)
+                else:
+                    job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp), helper)
+                    job.run()
+                pending = None
+                t = time.perf_counter()
+                job.wait()
+                self.waited_tracker += time.perf_counter() - t
+                tracks = flow.complete(job)
+                nxt = take()
+                launch_next = nxt is not _END and nxt[0].image is not None
+                if launch_next and not guided:  # the next frame needs nothing of the estimator
+                    pending = launch(nxt)
+                estimated = vo.estimate(frame.index, frame.timestamp, frame.image, tracks, start)
+                if launch_next and guided:
+                    pending = launch(nxt)
+                out = vo.finish(estimated)
+                self.caller_cpu += time.thread_time() - cpu
+                yield frame, out
+                cpu = time.thread_time()
+                item = nxt
+        finally:
+            stop.set()
+            if pending is not None and pending[1].rejected is None:
+                try:
+                    pending[1].wait()
+                except BaseException:  # noqa: BLE001 - the frame is abandoned anyway
+                    pass
+            tracker.shutdown(wait=True)
+            helper.shutdown(wait=True)
+            try:  # unblock the reader
+                while True:
+                    items.get_nowait()
+            except queue.Empty:
+                pass
+            reader.join(timeout=5.0)
