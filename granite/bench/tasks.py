@@ -108,7 +108,10 @@ def finalize_sequence(out: Path, seq: Sequence, *renders) -> dict:
 
 def run_vo(out: Path, seq: Sequence, variant: Variant, delta: float, *deps) -> dict:
     """One VO run (``granite run``'s :func:`~granite.cli.run_cmd.perform_run`: run folder with
-    trajectory, diagnostics, evaluation, plots and report) of a variant on a sequence."""
+    trajectory, diagnostics, evaluation, plots and report) of a variant on a sequence. It runs
+    the VO's sequential mode (bit-identical to the concurrent one): the cluster already gives
+    each core a single-threaded worker, and the frame pipeline's extra threads would only
+    compete with the other workers."""
     from granite.cli.run_cmd import perform_run
     from granite.io import open_dataset
 
@@ -116,7 +119,7 @@ def run_vo(out: Path, seq: Sequence, variant: Variant, delta: float, *deps) -> d
     t0 = time.perf_counter()
     dataset = open_dataset(seq.folder(Path(out)))
     perform_run(dataset, variant.build(), target, None, delta=delta, progress=False,
-                config_label=variant.label())
+                config_label=variant.label(), concurrent=False)
     wall = time.perf_counter() - t0
     atomic_write_text(vo_marker(out, seq, variant), json.dumps({"wall_s": wall}) + "\n")
     return {"kind": "vo", "sequence": seq.id, "variant": variant.name, "seconds": wall}
