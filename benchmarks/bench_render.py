@@ -10,7 +10,8 @@ the time of the sensor model per frame, and the load average (the machine may be
 ``--plain-terrain`` renders the terrain of before the realism work (no ripples, power-law
 rocks from 0.1 m) for an A/B comparison of the appearance cost in the same conditions. ``--corners`` also prints the number of
 FAST corners (OpenCV, threshold 20) per frame and its altitude; ``--save`` writes the frames.
-``--psnr-samples N`` renders every timed frame again with N samples (not timed) and prints the
+``--psnr-samples N`` renders every timed frame again with N samples and no adaptive sampling
+(not timed) and prints the
 PSNR of the render against it: on the linear luminance (mean of R, G, B) of the scene before the
 sensor model, both scaled by the reference's 99.5th percentile and clipped to [0, 1], so that it
 measures the renderer's sampling noise and aliasing, not the camera's.
@@ -116,12 +117,12 @@ def _psnr_against(renderer, pose, rgb, samples: int) -> float:
     """PSNR (dB) of ``rgb`` against a render of ``pose`` with ``samples`` samples (see the
     module docstring); the renderer's sample count is restored."""
     cycles = renderer.scene.cycles
-    before = cycles.samples
-    cycles.samples = samples
+    before = cycles.samples, cycles.use_adaptive_sampling
+    cycles.samples, cycles.use_adaptive_sampling = samples, False  # every pixel gets them all
     try:
         ref, _ = renderer.render(pose)
     finally:
-        cycles.samples = before
+        cycles.samples, cycles.use_adaptive_sampling = before
     lum, ref_lum = rgb.mean(axis=2), ref.mean(axis=2)
     scale = max(float(np.percentile(ref_lum, 99.5)), 1e-12)
     mse = float(np.mean((np.clip(lum / scale, 0, 1) - np.clip(ref_lum / scale, 0, 1)) ** 2))
