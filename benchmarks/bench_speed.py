@@ -2,8 +2,9 @@
 
     python benchmarks/bench_speed.py [DATASET ...] [--repeats 2] [--frames N] [--json FILE]
 
-Default datasets: the 640x480 bench renders ``runs/bench/*_640x480_*`` (of this checkout, else
-of ``/work/main``) and ``assets/sequences/*``. Per dataset and mode (``seq``: ``granite run
+Default datasets: the 640x480 bench renders of this checkout
+(``runs/bench/sequences/*_640x480_*``, made by ``python benchmarks/bench_vo.py``, and the older
+``runs/bench/*_640x480_*``), if any, and ``assets/sequences/*``. Per dataset and mode (``seq``: ``granite run
 --sequential``, one thread; ``conc``: the default concurrent pipeline,
 :mod:`granite.estimator.pipeline`) a fresh process
 
@@ -39,9 +40,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def default_datasets() -> list[Path]:
     bench = ROOT / "runs" / "bench"
-    if not any(bench.glob("*_640x480_*")):
-        bench = Path("/work/main/runs/bench")
-    found = sorted(p for p in bench.glob("*_640x480_*") if (p / "mav0").is_dir())
+    found = sorted(p for p in [*bench.glob("*_640x480_*"), *bench.glob("sequences/*_640x480_*")]
+                   if (p / "mav0").is_dir())
     found += sorted(p for p in (ROOT / "assets" / "sequences").iterdir() if (p / "mav0").is_dir())
     return found
 
