@@ -490,3 +490,23 @@ def test_deterministic(texture):
     runs = [track_pair(texture, warp(texture, affine))[3] for _ in range(2)]
     np.testing.assert_array_equal(runs[0].ids, runs[1].ids)
     np.testing.assert_array_equal(runs[0].positions, runs[1].positions)
+
+
+def test_crowded_cells_keep_their_oldest_tracks():
+    from granite.optical_flow.frame_to_frame import crowded_tracks_kept
+
+    rng = np.random.default_rng(3)
+    n = 400
+    points = rng.uniform(0, 320, (n, 2))
+    levels = rng.integers(0, 3, n)
+    ids = rng.permutation(n).astype(np.int64)
+    keep = crowded_tracks_kept(ids, points, levels, 40, 2)
+    # independent count: per (level, cell) the kept ones are exactly the min(2, count) smallest ids
+    cells = {}
+    for k in range(n):
+        c = (int(levels[k]), int(points[k, 0] / 2 ** levels[k] // 40), int(points[k, 1] / 2 ** levels[k] // 40))
+        cells.setdefault(c, []).append(k)
+    for members in cells.values():
+        oldest = sorted(members, key=lambda k: ids[k])[:2]
+        assert set(np.flatnonzero(keep[members]).tolist()) == {members.index(k) for k in oldest}
+    assert keep.sum() == sum(min(2, len(m)) for m in cells.values())

@@ -80,6 +80,9 @@ class OpticalFlowConfig:
             mean; see :mod:`granite.optical_flow.noise`), clipped to
             ``[fb_threshold_sq, fb_max_sq]``.
         fb_max_sq: upper bound of the noise-scaled limit (creation-level pixels²).
+        max_tracks_per_cell: not in the reference (0 = no limit, the reference). After
+            tracking, at most this many tracks per detection cell of their creation level are
+            kept, the oldest ones (``frame_to_frame.crowded_tracks_kept``).
     """
 
     levels: int = spec_field(6, 1, 12)
@@ -104,6 +107,7 @@ class OpticalFlowConfig:
     fb_noise_factor: float = spec_field(3.0, 0.0, 100.0, origin="ours", reference=0.0,
                                         doc="0 disables (the reference)")
     fb_max_sq: float = spec_field(0.3, 0.0, 1e4, lo_open=True, origin="ours")
+    max_tracks_per_cell: int = spec_field(0, 0, 100000, origin="ours", doc="0: no limit (the reference)")
 
     def __post_init__(self) -> None:
         validate_instance(self, "optical_flow")

@@ -112,6 +112,11 @@ class FlowJob:
                 ids, points, levels = ids[status], new_points[status], levels[status]
                 angles = angles[status] + dtheta[status]
                 self.rows = np.flatnonzero(status)
+                if self.config.max_tracks_per_cell > 0:
+                    keep = crowded_tracks_kept(ids, points, levels, self.config.grid_size,
+                                               self.config.max_tracks_per_cell)
+                    ids, points, levels, angles = ids[keep], points[keep], levels[keep], angles[keep]
+                    self.rows = self.rows[keep]
             else:
                 ids, points, levels, angles = ids[:0], points[:0], levels[:0], angles[:0]
                 self.rows = np.zeros(0, dtype=np.int64)
@@ -367,3 +372,24 @@ class FrameToFrameOpticalFlow:
             timing={"pyramid": 0.0, "tracking": 0.0, "detection": 0.0, "total": 0.0},
             rejected=reason,
         )
+
+
+def crowded_tracks_kept(ids: np.ndarray, points: np.ndarray, levels: np.ndarray, grid_size: int,
+                        max_per_cell: int) -> np.ndarray:
+    """Boolean mask keeping, in every detection cell of every creation level (``grid_size``
+    pixels of that level; positions in level-0 pixels), the ``max_per_cell`` oldest tracks
+    (smallest ids): tracks pile up in cells when the image contracts (climbing, zooming out),
+    and the extra ones repeat their neighbours' information at full cost."""
+    n = len(ids)
+    if n == 0:
+        return np.ones(0, dtype=bool)
+    scale = np.exp2(-levels.astype(np.float64))[:, None] / grid_size
+    cells = np.floor(points * scale).astype(np.int64)
+    order = np.lexsort((ids, cells[:, 1], cells[:, 0], levels))
+    key = np.stack([levels[order], cells[order, 0], cells[order, 1]], axis=1)
+    start = np.r_[True, np.any(key[1:] != key[:-1], axis=1)]
+    group_start = np.maximum.accumulate(np.where(start, np.arange(n), 0))
+    rank = np.arange(n) - group_start
+    keep = np.zeros(n, dtype=bool)
+    keep[order[rank < max_per_cell]] = True
+    return keep
