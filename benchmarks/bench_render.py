@@ -2,7 +2,7 @@
 settings: 4 samples, no denoiser, direct sun + analytic sky light).
 
     python benchmarks/bench_render.py [--frames 8] [--samples N] [--corners] [--save DIR]
-                                      [--plain-terrain] [--psnr-samples 64]
+                                      [--plain-terrain]
 
 Prints the wall time per frame (after one warm-up frame that builds the BVH), the process CPU
 time per frame divided by the render threads (what the time would be on an idle machine),
@@ -10,11 +10,6 @@ the time of the sensor model per frame, and the load average (the machine may be
 ``--plain-terrain`` renders the terrain of before the realism work (no ripples, power-law
 rocks from 0.1 m) for an A/B comparison of the appearance cost in the same conditions. ``--corners`` also prints the number of
 FAST corners (OpenCV, threshold 20) per frame and its altitude; ``--save`` writes the frames.
-``--psnr-samples N`` renders every timed frame again with N samples and no adaptive sampling
-(not timed) and prints the
-PSNR of the render against it: on the linear luminance (mean of R, G, B) of the scene before the
-sensor model, both scaled by the reference's 99.5th percentile and clipped to [0, 1], so that it
-measures the renderer's sampling noise and aliasing, not the camera's.
 """
 
 from __future__ import annotations
@@ -43,8 +38,6 @@ def main() -> int:
     ap.add_argument("--samples", type=int, default=None, help="override render.samples")
     ap.add_argument("--corners", action="store_true", help="FAST corners per altitude")
     ap.add_argument("--save", type=Path, default=None, help="write the frames as PNG here")
-    ap.add_argument("--psnr-samples", type=int, default=None,
-                    help="also render each frame with this many samples and print the PSNR")
     ap.add_argument("--plain-terrain", action="store_true",
                     help="no ripples, power-law rocks (the terrain before the realism work)")
     args = ap.parse_args()
@@ -72,7 +65,7 @@ def main() -> int:
     n = len(plan.times)
     # the first half of the spiral climbs from 4 m to 40 m: sample it evenly
     idx = np.linspace(0, n // 2, args.frames + 1).round().astype(int)
-    walls, cpus, sensor_ms, psnrs = [], [], [], []
+    walls, cpus, sensor_ms = [], [], []
     if args.save:
         args.save.mkdir(parents=True, exist_ok=True)
     with Renderer(s) as renderer:
@@ -91,9 +84,6 @@ def main() -> int:
             p = plan.poses[i][:3, 3]
             alt = p[2] - float(plan.model.ground_height(p[0], p[1]))
             line = f"frame {i:5d}  altitude {alt:5.1f} m  {walls[-1]:.2f} s"
-            if args.psnr_samples:
-                psnrs.append(_psnr_against(renderer, plan.poses[i], rgb, args.psnr_samples))
-                line += f"  PSNR {psnrs[-1]:.1f} dB against {args.psnr_samples} samples"
             if args.corners:
                 corners = len(cv2.FastFeatureDetector_create(20).detect(img))
                 line += f"  FAST corners {corners}"
@@ -107,26 +97,7 @@ def main() -> int:
     print(f"seconds per 640x480 frame: mean {np.mean(walls):.2f}, median {np.median(walls):.2f}"
           f" (wall); CPU / threads: mean {np.mean(cpus):.2f}; sensor model "
           f"{np.mean(sensor_ms):.0f} ms (grayscale)")
-    if psnrs:
-        print(f"PSNR against {args.psnr_samples} samples (linear luminance): mean "
-              f"{np.mean(psnrs):.1f} dB, min {np.min(psnrs):.1f} dB")
     return 0
-
-
-def _psnr_against(renderer, pose, rgb, samples: int) -> float:
-    """PSNR (dB) of ``rgb`` against a render of ``pose`` with ``samples`` samples (see the
-    module docstring); the renderer's sample count is restored."""
-    cycles = renderer.scene.cycles
-    before = cycles.samples, cycles.use_adaptive_sampling
-    cycles.samples, cycles.use_adaptive_sampling = samples, False  # every pixel gets them all
-    try:
-        ref, _ = renderer.render(pose)
-    finally:
-        cycles.samples, cycles.use_adaptive_sampling = before
-    lum, ref_lum = rgb.mean(axis=2), ref.mean(axis=2)
-    scale = max(float(np.percentile(ref_lum, 99.5)), 1e-12)
-    mse = float(np.mean((np.clip(lum / scale, 0, 1) - np.clip(ref_lum / scale, 0, 1)) ** 2))
-    return 10.0 * np.log10(1.0 / max(mse, 1e-20))
 
 
 if __name__ == "__main__":
