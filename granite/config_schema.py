@@ -191,3 +191,18 @@ def resolve_bundled_toml(name_or_path: str | Path, folder: Path, kind: str) -> P
         names = ", ".join(sorted(q.stem for q in folder.glob("*.toml")))
         raise ConfigError(f"{name_or_path}: no such {kind} file or bundled {kind} ({names})")
     return bundled
+
+
+def read_toml_file(path: Path, what: str) -> dict:
+    """The decoded TOML file ``path``; an unreadable or invalid file is one
+    :class:`granite.errors.ConfigError` line (``what``: e.g. "scenario", for the message)."""
+    import tomllib
+
+    from granite.errors import ConfigError
+
+    try:
+        return tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{path}: invalid TOML: {error}") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError(f"{path}: cannot read {what}: {error}") from None

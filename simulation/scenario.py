@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from granite.config_schema import build_dataclass, resolve_bundled_toml
+from granite.config_schema import build_dataclass, read_toml_file, resolve_bundled_toml
 from granite.config_schema import check_value as _check_value
 from granite.config_schema import spec_field as _f
 from granite.errors import ConfigError
@@ -367,13 +366,7 @@ def resolve_scenario_path(name_or_path: str | Path) -> Path:
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """Read and validate a scenario file (or bundled scenario name)."""
     path = resolve_scenario_path(name_or_path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{path}: invalid TOML: {error}") from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise ConfigError(f"{path}: cannot read scenario: {error}") from None
-    return parse_scenario(data, path)
+    return parse_scenario(read_toml_file(path, "scenario"), path)
 
 
 def with_overrides(s: Scenario, width: int | None = None, height: int | None = None,

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from granite.config_schema import check_value, resolve_bundled_toml, toml_value
+from granite.config_schema import check_value, read_toml_file, resolve_bundled_toml, toml_value
 from granite.errors import ConfigError, GraniteError
 from granite.evaluation import ALIGNMENTS, DEFAULT_RPE_DELTA
 
@@ -143,13 +143,7 @@ def resolve_study_path(name_or_path: str | Path) -> Path:
 def load_study(name_or_path: str | Path, check_flights: bool = True) -> Study:
     """Read and validate a study file (or bundled study name)."""
     path = resolve_study_path(name_or_path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{path}: invalid TOML: {error}") from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise ConfigError(f"{path}: cannot read the study: {error}") from None
-    return parse_study(data, path, check_flights)
+    return parse_study(read_toml_file(path, "the study"), path, check_flights)
 
 
 def scenario_toml(data: dict) -> str:
