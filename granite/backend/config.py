@@ -55,6 +55,9 @@ class BackendConfig:
             the oldest one with fewer than this fraction of its hosted landmarks seen in the
             newest frame, else the largest DSO distance score
             ``sqrt(|t_k - t_last|) sum_j 1 / (|t_k - t_j| + marg_distance_epsilon)`` [map units].
+            ``marg_seen_fraction`` is ours at 0.3 (the reference and DSO: 0.05): keyframes that
+            share little with the current view leave before the window spans the whole flight
+            (measured in docs/estimator.md, "Keyframe turnover").
     """
 
     obs_std_dev: float = spec_field(0.5, 0.0, 1e4, lo_open=True)
@@ -78,7 +81,7 @@ class BackendConfig:
     lm_lambda_increase: float = spec_field(10.0, 1.0, 1e6, lo_open=True, origin="ours")
     max_frames: int = spec_field(3, 1, 1000)
     max_keyframes: int = spec_field(11, 2, 1000)
-    marg_seen_fraction: float = spec_field(0.05, 0.0, 1.0)
+    marg_seen_fraction: float = spec_field(0.3, 0.0, 1.0, origin="ours", reference=0.05)
     marg_distance_epsilon: float = spec_field(1e-5, 0.0, 1e6, lo_open=True)
 
     def __post_init__(self) -> None:
