@@ -83,7 +83,13 @@ def main() -> int:
 
     from simulation.sensor import Sensor, blur_taps
 
-    s = with_overrides(load_scenario("spiral"), width=640, height=480, samples=args.samples)
+    from granite.errors import ConfigError
+
+    try:
+        s = with_overrides(load_scenario("spiral"), width=640, height=480, samples=args.samples)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     if args.plain_terrain:
         s = dataclasses.replace(s, terrain=dataclasses.replace(
             s.terrain, ripple_coverage=0.0, rock_model="power_law", rock_min_diameter=0.1))
