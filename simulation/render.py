@@ -177,6 +177,20 @@ class Renderer:
         if cam.model == "kb4":
             self._planar = _fisheye_bearing_z(cam)
 
+    def reconfigure(self, render_cfg) -> None:
+        """Apply other Cycles settings (a :class:`~simulation.scenario.RenderConfig`, e.g. more
+        samples) to the following renders of this renderer.
+
+        Cycles keeps its session between renders (persistent data) and re-reads its settings
+        only when the scene is tagged as changed: assigning ``scene.cycles.samples`` alone
+        does not tag it (Blender 5.0.1), and the next renders keep the first render's sample
+        count (bit-identical images). Assignments to ``scene.render`` do tag it, as does the
+        explicit tag here; Cycles then rebuilds the scene once (a few seconds, like the first
+        render) and the renders equal those of a fresh renderer with these settings.
+        """
+        configure_cycles(self.scene, render_cfg, self.width, self.height, self.scenario.seed)
+        self.scene.update_tag()
+
     def close(self) -> None:
         shutil.rmtree(self.scratch, ignore_errors=True)
 

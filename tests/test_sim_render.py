@@ -197,3 +197,35 @@ def test_sensor_noise_in_a_render_is_the_models(tmp_path, capsys):
     manifest = json.loads((tmp_path / "with" / "manifest.json").read_text())
     assert manifest["sensor"]["enabled"] and manifest["sensor"]["parameters"]["full_well"] == 3000.0
     assert json.loads((tmp_path / "without" / "manifest.json").read_text())["sensor"]["enabled"] is False
+
+
+def test_reconfigure_reaches_the_persistent_cycles_session():
+    """Renderer.reconfigure(render_cfg) gives, in the same (persistent-data) Cycles session,
+    the renders of a fresh renderer built with those settings: a bare assignment of
+    ``scene.cycles.samples`` does not tag the scene and Cycles keeps the first render's
+    sample count (how 4- and 64-sample renders once came out bit-identical)."""
+    import dataclasses
+
+    from simulation.plan import make_plan
+    from simulation.render import Renderer
+    from simulation.terrain.scene import build_world
+
+    camera = {"width": 64, "height": 48, "fx": 48.0, "fy": 48.0, "cx": 31.5, "cy": 23.5}
+    s1 = _scenario(camera, render={"samples": 1})
+    s16 = dataclasses.replace(s1, render=dataclasses.replace(s1.render, samples=16))
+    plan = make_plan(s1)
+    T_w_c = plan.poses[0]
+    build_world(s16, plan.model)
+    with Renderer(s16) as renderer:
+        fresh16, fresh_depth = renderer.render(T_w_c)
+    build_world(s1, plan.model)
+    with Renderer(s1) as renderer:
+        one, _ = renderer.render(T_w_c)
+        renderer.reconfigure(s16.render)
+        sixteen, depth = renderer.render(T_w_c)
+        renderer.reconfigure(s1.render)
+        one_again, _ = renderer.render(T_w_c)
+    assert np.abs(one - fresh16).max() > 1e-3, "the image does not depend on the sample count"
+    np.testing.assert_array_equal(sixteen, fresh16)
+    np.testing.assert_array_equal(depth, fresh_depth)
+    np.testing.assert_array_equal(one_again, one)
