@@ -12,7 +12,7 @@ from granite.camera import make_camera
 from granite.estimator.landmark_creation import LandmarkTriangulator
 from granite.estimator.map_initialization import init_candidates, rotation_compensated_parallax
 from granite.estimator.tracks import FrameTracks
-from granite.evaluation.initialization import initialization_delay, parallax_baseline
+from granite.evaluation.initialization import initialization_delay, parallax_available, parallax_baseline
 from granite.trajectory import Trajectory
 
 
@@ -127,3 +127,26 @@ def test_initialization_delay_counts_from_the_parallax_onset():
     never = initialization_delay(t, ["init"] * 40, gt, min_baseline=0.1)
     assert never.frames is None and never.seconds is None
     assert parallax_baseline(10.0, 5.0) == pytest.approx(2 * 10.0 * np.tan(np.radians(2.5)))
+
+
+def test_parallax_available_needs_the_eq8_baseline_at_each_frames_distance():
+    """2 m/s at 20 Hz after 10 still frames; the scene is 10 m away from the first 20 frames
+    and 1 m from the later ones: 5 deg needs 0.873 m from an early frame (0.1 m per frame ->
+    9 frames of motion) unless a later, closer frame gives 0.087 m sooner."""
+    t = np.arange(40) * 0.05
+    pos = np.zeros((40, 3))
+    pos[10:, 0] = (t[10:] - t[10]) * 2.0
+    poses = np.repeat(np.eye(4)[None], 40, axis=0)
+    poses[:, :3, 3] = pos
+    gt = Trajectory(t, poses)
+    far = np.full(40, 10.0)
+    # independent count: first k with some j < k and |x_k - x_j| >= 2 rho tan(2.5 deg)
+    need = 2 * 10.0 * np.tan(np.radians(2.5))
+    expected = next(k for k in range(40) if np.max(np.abs(pos[k, 0] - pos[:k, 0]), initial=0) >= need)
+    assert parallax_available(t, gt, far, 5.0) == expected == 19
+    mixed = far.copy()
+    mixed[15:] = 1.0  # frame 15 sees a close scene: frame 16 is 0.1 m >= 0.087 m from it
+    assert parallax_available(t, gt, mixed, 5.0) == 16
+    assert parallax_available(t, gt, np.full(40, np.nan), 5.0) is None
+    with pytest.raises(ValueError):
+        parallax_available(t, gt, far[:5], 5.0)

@@ -75,6 +75,29 @@ def parallax_onset(timestamps: np.ndarray, gt: Trajectory, min_baseline: float) 
     return None
 
 
+def parallax_available(timestamps: np.ndarray, gt: Trajectory, scene_distances: np.ndarray,
+                       min_parallax_deg: float) -> int | None:
+    """Index of the first of ``timestamps`` whose ground-truth centre has, to the centre of an
+    earlier one ``j``, the baseline of a parallax of ``min_parallax_deg`` at that frame's scene
+    distance ``scene_distances[j]`` (paper Eq. 8, :func:`parallax_baseline`; e.g. the median
+    rendered depth): the first frame a two-view initialisation with that threshold could
+    accept. Non-finite or non-positive distances never qualify."""
+    ts = np.asarray(timestamps, dtype=np.float64)
+    rho = np.asarray(scene_distances, dtype=np.float64)
+    if rho.shape != ts.shape:
+        raise ValueError(f"{len(rho)} scene distances for {len(ts)} timestamps")
+    inside = np.flatnonzero((ts >= gt.timestamps[0]) & (ts <= gt.timestamps[-1]))
+    if not len(inside):
+        return None
+    centres = interpolate_poses(gt.timestamps, gt.poses, ts[inside])[:, :3, 3]
+    needed = np.array([parallax_baseline(r, min_parallax_deg) if np.isfinite(r) and r > 0
+                       else np.inf for r in rho[inside]])
+    for k in range(1, len(inside)):
+        if np.any(np.linalg.norm(centres[:k] - centres[k], axis=1) >= needed[:k]):
+            return int(inside[k])
+    return None
+
+
 def initialization_delay(timestamps, states, gt: Trajectory,
                          min_baseline: float = DEFAULT_MIN_BASELINE) -> InitializationDelay:
     """Delay of the first map initialisation (see the module docstring). ``timestamps`` and
