@@ -140,3 +140,32 @@ def test_dry_run_lists_the_runs(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "4 runs; 8 tasks to run" in out and "vo       default / reference" in out
     assert not (tmp_path / "results.csv").exists()
+
+
+def test_a_finished_run_counts_only_for_the_configuration_that_made_it(tmp_path):
+    """Resuming a study keeps a VO run only when its marker records the variant's current
+    configuration: an edited variant (overrides, ablation) or an old marker is run again."""
+    import dataclasses
+    import json
+
+    from granite.bench import tasks
+
+    study = load_study(SMOKE)
+    seq, variant = study.runs()[0]
+
+    def vo_tasks():
+        return sum(t.kind == "vo" for t in plan_study(study, tmp_path).tasks)
+
+    assert vo_tasks() == 4
+    marker = tasks.vo_marker(tmp_path, seq, variant)
+    marker.parent.mkdir(parents=True)
+    marker.write_text(json.dumps({"wall_s": 1.0, "config": tasks.config_fingerprint(variant)}))
+    assert vo_tasks() == 3
+    edited = dataclasses.replace(variant, overrides={"backend": {"max_keyframes": 9}})
+    ablated = dataclasses.replace(variant, finest_level_only=True)
+    assert len({tasks.config_fingerprint(v) for v in (variant, edited, ablated)}) == 3
+    assert not tasks.vo_done(tmp_path, seq, edited) and not tasks.vo_done(tmp_path, seq, ablated)
+    marker.write_text(json.dumps({"wall_s": 1.0}))  # a marker of before the fingerprint
+    assert vo_tasks() == 4
+    marker.write_text("not json")
+    assert vo_tasks() == 4

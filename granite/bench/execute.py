@@ -64,7 +64,7 @@ def plan_study(study: Study, out: Path) -> Plan:
         ready[seq.id] = key
     for seq, variant in study.runs():
         vo_key = None
-        if ready[seq.id] is None and tasks.vo_marker(out, seq, variant).is_file():
+        if ready[seq.id] is None and tasks.vo_done(out, seq, variant):
             kept["vo"] += 1
             row = tasks.read_row(out, seq, variant, study.delta, study.align)
             if row is not None:

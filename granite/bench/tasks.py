@@ -58,6 +58,27 @@ def vo_marker(out: Path, seq: Sequence, variant: Variant) -> Path:
     return run_dir(out, seq, variant) / MARKERS / "vo.json"
 
 
+def config_fingerprint(variant: Variant) -> str:
+    """SHA-256 (16 hex digits) of the variant's complete VO configuration (TOML, ablations
+    included): a finished run counts only for the configuration that made it."""
+    import hashlib
+
+    return hashlib.sha256(variant.build().to_toml().encode("utf-8")).hexdigest()[:16]
+
+
+def vo_done(out: Path, seq: Sequence, variant: Variant) -> bool:
+    """Whether the run folder holds a finished run of the variant's current configuration (a
+    run of an edited variant, or of a marker without a fingerprint, is done again)."""
+    marker = vo_marker(out, seq, variant)
+    if not marker.is_file():
+        return False
+    try:
+        recorded = json.loads(marker.read_text(encoding="utf-8")).get("config")
+    except (OSError, ValueError):
+        return False
+    return recorded == config_fingerprint(variant)
+
+
 def _render(out: Path, seq: Sequence, frames: str) -> str:
     """``granite-sim render`` of ``frames`` of the sequence in a subprocess; its stderr summary."""
     cmd = [sys.executable, "-m", "simulation.cli", "render", str(seq.scenario_file(out)),
@@ -121,7 +142,8 @@ def run_vo(out: Path, seq: Sequence, variant: Variant, delta: float, *deps) -> d
     perform_run(dataset, variant.build(), target, None, delta=delta, progress=False,
                 config_label=variant.label(), concurrent=False)
     wall = time.perf_counter() - t0
-    atomic_write_text(vo_marker(out, seq, variant), json.dumps({"wall_s": wall}) + "\n")
+    atomic_write_text(vo_marker(out, seq, variant),
+                      json.dumps({"wall_s": wall, "config": config_fingerprint(variant)}) + "\n")
     return {"kind": "vo", "sequence": seq.id, "variant": variant.name, "seconds": wall}
 
 
