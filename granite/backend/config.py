@@ -55,6 +55,12 @@ class BackendConfig:
             the oldest one with fewer than this fraction of its hosted landmarks seen in the
             newest frame, else the largest DSO distance score
             ``sqrt(|t_k - t_last|) sum_j 1 / (|t_k - t_j| + marg_distance_epsilon)`` [map units].
+        marg_max_keyframe_age: not in the reference (0: off): the window's time horizon [s].
+            The oldest keyframe leaves when it is older than this (relative to the newest
+            frame), full window or not, while more than 3 keyframes remain.
+        marg_depth_change: not in the reference (0: off): a full window first marginalises
+            the keyframe whose median landmark depth differs most from the newest frame's, if
+            by more than the factor ``1 + marg_depth_change``.
     """
 
     obs_std_dev: float = spec_field(0.5, 0.0, 1e4, lo_open=True)
@@ -80,6 +86,8 @@ class BackendConfig:
     max_keyframes: int = spec_field(11, 2, 1000)
     marg_seen_fraction: float = spec_field(0.05, 0.0, 1.0)
     marg_distance_epsilon: float = spec_field(1e-5, 0.0, 1e6, lo_open=True)
+    marg_max_keyframe_age: float = spec_field(0.0, 0.0, 1e6, origin="ours", reference=0.0)
+    marg_depth_change: float = spec_field(0.0, 0.0, 100.0, origin="ours", reference=0.0)
 
     def __post_init__(self) -> None:
         validate_instance(self, "backend")
