@@ -2,13 +2,14 @@
 
     python benchmarks/bench_scale_drift.py PATH [PATH ...] [--out DIR] [--delta 1] [--lag 1]
                                            [--bin 5] [--plot] [--cost DATASET]
-                                           [--exclude-scale-fix]
+                                           [--exclude-scale-fix] [--config FILE]
 
 PATH is a run folder of `granite run` (diagnostics.csv with the scale_drift_indicator columns;
 its dataset is read from summary.json) or a test-bench dataset folder, which is run first (in
 process, default configuration, as `granite run`) into DIR/<name> (skipped when that run folder
 exists; with --exclude-scale-fix into DIR/<name>_no_scale_fix, Λ leaving the scale fix of Eq. 9
-out while it is in the window, as the reference does). For every run it prints,
+out while it is in the window, as the reference does; with --config FILE in DIR/<name>_<stem of
+FILE>, with that configuration, e.g. a keyframe-turnover option). For every run it prints,
 for Eq. 17 (``Λ``) and the reference code's variant (``Λ_ref``) side by side:
 
 * defined: the share of tracked frames (state tracking / reinit) with Λ defined, counted from
@@ -20,7 +21,10 @@ for Eq. 17 (``Λ``) and the reference code's variant (``Λ_ref``) side by side:
   scale-drift rate (:func:`granite.evaluation.scale_drift_rate`: change of the log of the true
   relative scale error over ``--delta`` s of motion, per second, over ``--lag`` s);
 * the median Λ and the RMS drift rate of the run; with several runs, Kendall's τ of the run
-  ordering by median Λ against the ordering by RMS drift rate.
+  ordering by median Λ against the ordering by RMS drift rate;
+* the keyframe system over the run (does it follow the flight?): the number of keyframes, the
+  longest time without a new keyframe (to the end of the run included), and the age of the oldest keyframe in the window (its
+  maximum and median over the frames; from ``landmarks.npz``).
 
 --plot writes DIR/<name>_scale_drift.png (height, true relative scale error, Λ and Λ_ref,
 drift rate over time, as the paper's Fig. 4). --cost DATASET runs the VO in-process on the
@@ -51,12 +55,14 @@ from granite.io.run_folder import read_estimate  # noqa: E402
 TRACKED = ("tracking", "reinit")
 
 
-def _run_folder(path: Path, out: Path, exclude_scale_fix: bool) -> Path:
+def _run_folder(path: Path, out: Path, exclude_scale_fix: bool, config: Path | None = None) -> Path:
     """``path`` itself when it is a run folder, else the run of the dataset ``path`` in
-    ``out`` (run in-process with the default configuration when it does not exist yet)."""
+    ``out`` (run in-process with the default configuration, or ``config``, when it does not
+    exist yet)."""
     if (path / "diagnostics.csv").is_file():
         return path
-    run = out / (path.name + ("_no_scale_fix" if exclude_scale_fix else ""))
+    run = out / (path.name + ("_no_scale_fix" if exclude_scale_fix else "")
+                 + (f"_{config.stem}" if config is not None else ""))
     if not (run / "diagnostics.csv").is_file():
         import granite.estimator.vo as vo_module
         from granite.backend import scale_drift_indicator
@@ -66,7 +72,8 @@ def _run_folder(path: Path, out: Path, exclude_scale_fix: bool) -> Path:
         print(f"running the VO on {path} -> {run}", flush=True)
         vo_module.scale_drift_indicator = functools.partial(
             scale_drift_indicator, include_scale_fix=not exclude_scale_fix)
-        perform_run(open_dataset(path), VoConfig(), run, progress=False)
+        perform_run(open_dataset(path), VoConfig.load(config) if config is not None else VoConfig(), run,
+                    progress=False)
         vo_module.scale_drift_indicator = scale_drift_indicator
     return run
 
@@ -139,8 +146,32 @@ def analyse(run: Path, delta: float, lag: float, bin_s: float, plot_dir: Path | 
             "spearman_bins": _spearman(med_lam, rms_rate), "bins": len(med_lam),
             "median": float(np.median(v[defined])) if defined.any() else None,
         }
+    out["keyframe_system"] = keyframe_turnover(run, float(t[-1]))
     if plot_dir is not None:
         _plot(plot_dir / f"{run.name}_scale_drift.png", t - t0, height, series, rate, lam, t0)
+    return out
+
+
+def keyframe_turnover(run: Path, t_end: float) -> dict:
+    """Keyframes of a run folder, the longest time without a new keyframe [s] (the time from
+    the last one to ``t_end``, the run's last frame, included) and the age of the oldest
+    keyframe in the window per frame (max, median) [s]; the ages need landmarks.npz."""
+    kf = np.loadtxt(run / "keyframes.csv", delimiter=",", skiprows=1, ndmin=2)
+    out = {"keyframes": len(kf),
+           "longest_keyframe_gap_s": float(np.diff(np.r_[kf[:, 0], t_end]).max()) if len(kf) else None,
+           "oldest_keyframe_age_max_s": None, "oldest_keyframe_age_median_s": None}
+    if (run / "landmarks.npz").is_file():
+        z = np.load(run / "landmarks.npz")
+        ts = dict(zip(z["frame_index"].tolist(), z["frame_timestamp"].tolist()))
+        frames, ids = z["keyframe_frame"], z["keyframe_id"]
+        order = np.argsort(frames, kind="stable")
+        frames, ids = frames[order], ids[order]
+        starts = np.flatnonzero(np.r_[True, frames[1:] != frames[:-1]]) if len(frames) else np.zeros(0, int)
+        ages = [ts[int(frames[a])] - min(ts[int(k)] for k in ids[a:b].tolist())
+                for a, b in zip(starts, np.r_[starts[1:], len(frames)])]
+        if ages:
+            out["oldest_keyframe_age_max_s"] = float(np.max(ages))
+            out["oldest_keyframe_age_median_s"] = float(np.median(ages))
     return out
 
 
@@ -220,12 +251,22 @@ def main(argv=None) -> int:
     ap.add_argument("--exclude-scale-fix", action="store_true",
                     help="datasets run here leave the scale fix out of Λ while it is in the window "
                          "(the reference's choice; runs go to DIR/<name>_no_scale_fix)")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="configuration for the datasets run here (runs go to DIR/<name>_<stem>)")
     args = ap.parse_args(argv)
+    if args.config is not None:
+        from granite.errors import ConfigError
+        from granite.estimator.config import VoConfig
+        try:
+            VoConfig.load(args.config)
+        except ConfigError as error:
+            print(f"error: {error}", file=sys.stderr)
+            return 2
     args.out.mkdir(parents=True, exist_ok=True)
     results = []
     for path in args.paths:
-        results.append(analyse(_run_folder(path, args.out, args.exclude_scale_fix), args.delta, args.lag, args.bin,
-                               args.out if args.plot else None, args.min_motion))
+        results.append(analyse(_run_folder(path, args.out, args.exclude_scale_fix, args.config), args.delta,
+                               args.lag, args.bin, args.out if args.plot else None, args.min_motion))
     fmt = lambda x, p=3: "  n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{p}f}"  # noqa: E731
     if results:
         print(f"\nΔ = {args.delta:g} s (true motion >= {args.min_motion:g} m), lag = {args.lag:g} s, "
@@ -239,6 +280,12 @@ def main(argv=None) -> int:
                       f"{fmt(v['defined_kf_plus3']):>9s} {fmt(v['spearman_height']):>9s} "
                       f"{fmt(v['spearman_bins']):>8s} {v['bins']:4d} {fmt(v['median'], 4):>9s} "
                       f"{fmt(r['rms_drift_rate'], 4):>9s}")
+        print(f"\n{'run':34s} {'keyframes':>9s} {'longest gap [s]':>15s} {'oldest kf age max / median [s]':>31s}")
+        for r in results:
+            k = r["keyframe_system"]
+            ages = f"{fmt(k['oldest_keyframe_age_max_s'], 1)} / {fmt(k['oldest_keyframe_age_median_s'], 1)}"
+            print(f"{Path(r['run']).name[:34]:34s} {k['keyframes']:9d} {fmt(k['longest_keyframe_gap_s'], 1):>15s} "
+                  f"{ages:>31s}")
     if len(results) >= 2:
         for key, label in (("eq17", "Eq. 17"), ("ref", "reference variant")):
             pairs = [(r[key]["median"], r["rms_drift_rate"]) for r in results

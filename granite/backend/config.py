@@ -58,6 +58,12 @@ class BackendConfig:
             ``marg_seen_fraction`` is ours at 0.3 (the reference and DSO: 0.05): keyframes that
             share little with the current view leave before the window spans the whole flight
             (measured in docs/estimator.md, "Keyframe turnover").
+        marg_max_keyframe_age: not in the reference (0: off): the window's time horizon [s].
+            The oldest keyframe leaves when it is older than this (relative to the newest
+            frame), full window or not, while more than 3 keyframes remain.
+        marg_depth_change: not in the reference (0: off): a full window first marginalises
+            the keyframe whose median landmark depth differs most from the newest frame's, if
+            by more than the factor ``1 + marg_depth_change``.
     """
 
     obs_std_dev: float = spec_field(0.5, 0.0, 1e4, lo_open=True)
@@ -83,6 +89,8 @@ class BackendConfig:
     max_keyframes: int = spec_field(11, 2, 1000)
     marg_seen_fraction: float = spec_field(0.3, 0.0, 1.0, origin="ours", reference=0.05)
     marg_distance_epsilon: float = spec_field(1e-5, 0.0, 1e6, lo_open=True)
+    marg_max_keyframe_age: float = spec_field(0.0, 0.0, 1e6, origin="ours", reference=0.0)
+    marg_depth_change: float = spec_field(0.0, 0.0, 100.0, origin="ours", reference=0.0)
 
     def __post_init__(self) -> None:
         validate_instance(self, "backend")

@@ -99,6 +99,11 @@ class EstimatorConfig:
             most rotation-compensated parallax to the newest frame is never marginalised.
         keyframe_on_invalid_entropy: a missing or non-finite (singular) negative entropy forces
             a keyframe, as in the reference (false: it never triggers one).
+        keyframe_depth_change: not in the reference (0: off): a keyframe is also taken when
+            the median depth of the current frame's finite landmarks differs from the newest
+            keyframe's by more than the factor ``1 + keyframe_depth_change`` (the scene scale
+            changed: climb, descent), at least ``min_frames_after_keyframe`` frames after a
+            keyframe (:func:`granite.estimator.keyframes.median_depth`).
         refind_enabled: not in the reference: a mapped frame observing fewer than
             ``refind_below_finite`` finite landmarks re-finds the window's others from their
             predicted positions, tracking their host keyframe's patch
@@ -132,6 +137,7 @@ class EstimatorConfig:
     init_candidate_min_parallax: float = spec_field(0.0, 0.0, 10.0, origin="ours")
     init_keep_reference: bool = spec_field(True, origin="ours", reference=False)
     keyframe_on_invalid_entropy: bool = spec_field(True)
+    keyframe_depth_change: float = spec_field(0.0, 0.0, 100.0, origin="ours", reference=0.0)
     refind_enabled: bool = spec_field(False, origin="ours")
     refind_below_finite: int = spec_field(30, 0, 100000, origin="ours")
     refind_fb_threshold_sq: float = spec_field(0.3, 0.0, 1e4, lo_open=True, origin="ours")

@@ -32,7 +32,7 @@ import numpy as np
 from granite.backend import SlidingWindow, scale_drift_indicator
 from granite.estimator.config import VoConfig
 from granite.estimator.diagnostics import FrameDiagnostics
-from granite.estimator.keyframes import EntropyKeyframeSelector
+from granite.estimator.keyframes import EntropyKeyframeSelector, depth_ratio_exceeds, median_depth
 from granite.estimator.landmark_creation import LandmarkTriangulator
 from granite.estimator.map_initialization import build_initial_map, find_map_initialization, init_candidates
 from granite.estimator.motion_model import ConstantVelocityModel, predicted_track_positions
@@ -90,6 +90,8 @@ class MonocularVO:
         #: least ``scene_distance_min_points`` of them: the scale a re-initialisation carries over.
         self._scene_distance: float | None = None
         self._previous_frame: int | None = None
+        #: timestamps of the window's frames (the keyframe-age rule of the window policy)
+        self._timestamps: dict[int, float] = {}
         #: (track ids, their inverse distances) of the last estimated frame, in the window's
         #: state at the end of :meth:`estimate` (valid until the next one)
         self._track_inverse_distances: tuple[np.ndarray, np.ndarray] | None = None
@@ -118,6 +120,7 @@ class MonocularVO:
         """Forget the window and start an empty sub-map (the next frame starts it)."""
         self.window.reset()
         self._tracks.clear()
+        self._timestamps.clear()
         self.refinder.reset()
         self._init_reference = None
         self.selector.reset()
@@ -133,6 +136,7 @@ class MonocularVO:
         infinity. Returns its pose."""
         self._tracks[frame_id] = FrameTracks.from_result(tracks)
         self.window.add_frame(frame_id, np.eye(4), is_keyframe=True)
+        self._timestamps[frame_id] = timestamp
         self.triangulator.add_hosted_by(self._tracks, frame_id)
         self.keyframe_log.append((frame_id, self.submap))
         if self.config.estimator.refind_enabled:
@@ -196,6 +200,16 @@ class MonocularVO:
             win.optimize(max_iterations=est.keyframe_extra_iterations)
         return True
 
+    def _scene_scale_changed(self, frame_id: int) -> bool:
+        """The scene-scale keyframe criterion (``keyframe_depth_change``): the median depth of
+        the frame's finite landmarks differs from the newest keyframe's by more than the
+        factor ``1 + keyframe_depth_change``."""
+        kfs = [k for k in self.window.keyframe_ids if k != frame_id]
+        if not kfs:
+            return False
+        return depth_ratio_exceeds(median_depth(self.window, frame_id), median_depth(self.window, kfs[-1]),
+                                   self.config.estimator.keyframe_depth_change)
+
     def _optimize_and_select_keyframe(self, frame_id: int) -> tuple[float | None, bool]:
         """Gauss-Newton on the window, then the keyframe decision of Sec. IV-D (taken on the
         system linearised after ``entropy_iteration`` iterations), re-triangulation of points
@@ -213,6 +227,9 @@ class MonocularVO:
         )
         # the map measures this frame's translation only through finite landmarks (IV-C)
         measured = not est.triangulate_needs_map or finite >= est.min_finite_observations
+        if (not take and est.keyframe_depth_change > 0.0 and finite >= est.min_finite_observations
+                and self.selector.frames_since_keyframe > est.min_frames_after_keyframe):
+            take = self._scene_scale_changed(frame_id)
         inserted = take and not win.is_keyframe(frame_id) and self._insert_keyframe(
             frame_id, forced=finite + infinite < est.keyframe_min_connected, triangulate=measured)
         if measured:
@@ -251,6 +268,7 @@ class MonocularVO:
         starts_submap = self.state is MapState.EMPTY
         guess = np.eye(4) if starts_submap else self.motion.predict(timestamp)
         win.add_frame(frame_id, guess, is_keyframe=starts_submap)
+        self._timestamps[frame_id] = timestamp
         keyframe_taken = False
         if starts_submap:
             self.triangulator.add_hosted_by(self._tracks, frame_id)  # all at infinity
@@ -289,11 +307,12 @@ class MonocularVO:
             drift = scale_drift_indicator(win)  # final estimate, before marginalisation (Sec. V)
             keep = {self._init_reference} if (est.init_keep_reference and self.state is not MapState.MAPPED
                                               and self._init_reference in win) else set()
-            marg = frames_to_marginalize(win, self.config.backend, keep)
+            marg = frames_to_marginalize(win, self.config.backend, keep, self._timestamps)
             if marg:
                 win.marginalize(marg)
                 for f in marg:
                     self._tracks.pop(f, None)
+                    self._timestamps.pop(f, None)
                 self.refinder.prune()
             if initialized:  # the pose jumped to the new map's: no motion to measure
                 self.motion.forget_motion()
