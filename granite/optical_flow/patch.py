@@ -26,6 +26,14 @@ FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 _FASTMATH = FASTMATH
 
 
+@njit(cache=True, inline="always")
+def _u(i):
+    """An index into a pyramid buffer as unsigned: the callers keep their indices inside the
+    buffer, and numba then leaves out its negative-index wraparound (a compare and select
+    per load, a quarter of the instructions of the sampling loops)."""
+    return np.uint64(i)
+
+
 @njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
 def in_bounds(x: float, y: float, w: int, h: int, margin: float) -> bool:
     """True when (x, y) is at least ``margin`` pixels inside a w x h image."""
@@ -40,8 +48,8 @@ def interp(buf, off, w, x, y):
     dx = x - ix
     dy = y - iy
     i = off + iy * w + ix
-    top = (1.0 - dx) * buf[i] + dx * buf[i + 1]
-    bottom = (1.0 - dx) * buf[i + w] + dx * buf[i + w + 1]
+    top = (1.0 - dx) * buf[_u(i)] + dx * buf[_u(i + 1)]
+    bottom = (1.0 - dx) * buf[_u(i + w)] + dx * buf[_u(i + w + 1)]
     return (1.0 - dy) * top + dy * bottom
 
 
@@ -56,23 +64,23 @@ def interp_grad(buf, off, w, x, y):
     ddx = 1.0 - dx
     ddy = 1.0 - dy
     i = off + iy * w + ix
-    p00 = buf[i]
-    p10 = buf[i + 1]
-    p01 = buf[i + w]
-    p11 = buf[i + w + 1]
+    p00 = buf[_u(i)]
+    p10 = buf[_u(i + 1)]
+    p01 = buf[_u(i + w)]
+    p11 = buf[_u(i + w + 1)]
     value = ddx * ddy * p00 + dx * ddy * p10 + ddx * dy * p01 + dx * dy * p11
     # x - 1 and x + 1
-    pm0 = buf[i - 1]
-    pm1 = buf[i + w - 1]
-    p20 = buf[i + 2]
-    p21 = buf[i + w + 2]
+    pm0 = buf[_u(i - 1)]
+    pm1 = buf[_u(i + w - 1)]
+    p20 = buf[_u(i + 2)]
+    p21 = buf[_u(i + w + 2)]
     v_mx = ddx * ddy * pm0 + dx * ddy * p00 + ddx * dy * pm1 + dx * dy * p01
     v_px = ddx * ddy * p10 + dx * ddy * p20 + ddx * dy * p11 + dx * dy * p21
     # y - 1 and y + 1
-    p0m = buf[i - w]
-    p1m = buf[i - w + 1]
-    p02 = buf[i + 2 * w]
-    p12 = buf[i + 2 * w + 1]
+    p0m = buf[_u(i - w)]
+    p1m = buf[_u(i - w + 1)]
+    p02 = buf[_u(i + 2 * w)]
+    p12 = buf[_u(i + 2 * w + 1)]
     v_my = ddx * ddy * p0m + dx * ddy * p1m + ddx * dy * p00 + dx * dy * p10
     v_py = ddx * ddy * p01 + dx * ddy * p11 + ddx * dy * p02 + dx * dy * p12
     return value, 0.5 * (v_px - v_mx), 0.5 * (v_py - v_my)
