@@ -14,9 +14,10 @@ import numpy as np
 import scipy.linalg
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, Jb: np.ndarray, k: int) -> None:
-    """``Hb[i, j] += wJa^T Jb[k]`` for 2x6 Jacobians (block layout (K,K,6,6))."""
+    """``Hb[i, j] += wJa^T Jb[k]`` for 2x6 Jacobians (block layout (K,K,6,6)). Inlined into
+    :func:`schur_reduce` (LLVM left it a call: 5 % of that kernel)."""
     for c1 in range(6):
         a0 = wJa[0, c1]
         a1 = wJa[1, c1]
