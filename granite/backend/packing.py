@@ -8,7 +8,6 @@ by landmark, pose indices instead of frame ids.
 from __future__ import annotations
 
 import dataclasses
-import operator
 
 import numpy as np
 
@@ -43,19 +42,24 @@ class PackedObservations:
         return int(self.obs_lm.shape[0])
 
 
-def pack_structure(landmarks: dict, slots: ObservationSlots, frame_index: dict[int, int],
-                   ids: list[int] | None, target_filter: set[int] | None) -> tuple:
-    """The observation structure of a packed problem (everything but the landmark states):
-    ``(landmark_ids, landmarks, lm_host, lm_ptr, obs_lm, obs_tgt, obs_uv, obs_level)``.
-    ``landmarks`` maps id -> :class:`~granite.backend.landmarks.Landmark`; ``slots`` must be
-    flushed."""
-    if ids is None:
-        ids = sorted(landmarks)
-    lms = [landmarks[i] for i in ids]
-    m = len(ids)
-    ids_arr = np.array(ids, dtype=np.int64).reshape(m)
-    lm_host = np.array([frame_index[lm.host_frame_id] for lm in lms],
-                       dtype=np.int64).reshape(m)
+def pack_structure(ids_arr: np.ndarray, host_frames: np.ndarray, slots: ObservationSlots,
+                   frame_index: dict[int, int], target_filter: set[int] | None) -> tuple:
+    """The observation structure of a packed problem (everything but the landmark states) of
+    the landmarks ``ids_arr`` (M,) hosted by the frames ``host_frames`` (M,):
+    ``(lm_host, lm_ptr, obs_lm, obs_tgt, obs_uv, obs_level)``. ``slots`` must be flushed;
+    ``KeyError`` when a host is not in ``frame_index``."""
+    m = ids_arr.shape[0]
+    # pose index of the observing frame (or none)
+    nf = len(frame_index)
+    f_ids = np.fromiter(frame_index.keys(), dtype=np.int64, count=nf)
+    f_pos = np.fromiter(frame_index.values(), dtype=np.int64, count=nf)
+    f_sort = np.argsort(f_ids, kind="stable")
+    f_ids, f_pos = f_ids[f_sort], f_pos[f_sort]
+    hp = np.minimum(np.searchsorted(f_ids, host_frames), max(nf - 1, 0))
+    host_ok = (f_ids[hp] == host_frames) if nf else np.zeros(m, dtype=bool)
+    if not np.all(host_ok):
+        raise KeyError(int(host_frames[np.flatnonzero(~host_ok)[0]]))
+    lm_host = f_pos[hp] if m else np.zeros(0, dtype=np.int64)
     live = slots.live_slots()
     # landmark row of every live slot (or none)
     o_lm = slots.landmark_ids(live)
@@ -64,12 +68,6 @@ def pack_structure(landmarks: dict, slots: ObservationSlots, frame_index: dict[i
     pos = np.minimum(np.searchsorted(sorted_ids, o_lm), max(m - 1, 0))
     ok = sorted_ids[pos] == o_lm if m else np.zeros(live.shape[0], dtype=bool)
     row = sorter[pos] if m else pos
-    # pose index of the observing frame (or none)
-    nf = len(frame_index)
-    f_ids = np.fromiter(frame_index.keys(), dtype=np.int64, count=nf)
-    f_pos = np.fromiter(frame_index.values(), dtype=np.int64, count=nf)
-    f_sort = np.argsort(f_ids, kind="stable")
-    f_ids, f_pos = f_ids[f_sort], f_pos[f_sort]
     o_frame = slots.frame_ids(live)
     fp = np.minimum(np.searchsorted(f_ids, o_frame), max(nf - 1, 0))
     ok &= (f_ids[fp] == o_frame) if nf else False
@@ -82,15 +80,5 @@ def pack_structure(landmarks: dict, slots: ObservationSlots, frame_index: dict[i
     obs_slots = live[order]
     lm_ptr = np.zeros(m + 1, dtype=np.int64)
     np.cumsum(np.bincount(obs_lm, minlength=m), out=lm_ptr[1:])
-    return (ids_arr, lms, lm_host, lm_ptr, obs_lm, f_pos[fp[order]],
-            slots.pixels(obs_slots), slots.levels(obs_slots))
-
-
-def gather_bearings(lms: list, store: tuple[list[np.ndarray], np.ndarray] | None) -> np.ndarray:
-    """Stereographic bearings (M, 2) of landmarks. Fast path: the bearings are still the row
-    views of ``store`` written by the last unpack (in the same order)."""
-    ss = [lm.s for lm in lms]
-    if (store is not None and len(store[0]) == len(ss) > 0
-            and all(map(operator.is_, ss, store[0])) and ss[0].base is store[1]):
-        return store[1].copy()
-    return np.array(ss, dtype=np.float64).reshape(len(ss), 2)
+    return (lm_host, lm_ptr, obs_lm, f_pos[fp[order]], slots.pixels(obs_slots),
+            slots.levels(obs_slots))
