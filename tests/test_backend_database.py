@@ -269,3 +269,16 @@ def test_state_rows_compact_and_removed_landmarks_keep_their_state(id_base):
     _assert_pack_equal(db, index, ids[::7])
     with pytest.raises(KeyError):
         db.pack(index, [id_base - 1])
+
+
+def test_pack_with_spread_out_frame_ids_matches_reference():
+    rng = np.random.default_rng(8)
+    db = LandmarkDatabase()
+    frames = [0, 7, 10**12, -3]
+    for lm_id in range(40):
+        db.add_landmark(lm_id, int(rng.choice(frames)), rng.normal(size=3) + [0, 0, 3], 0.5)
+        for f in rng.choice(frames, size=3, replace=False).tolist():
+            db.add_observation(lm_id, f, rng.uniform(0, 640, size=2), 1)
+    index = {f: i for i, f in enumerate(frames)}
+    _assert_pack_equal(db, index)
+    _assert_pack_equal(db, index, list(range(39, -1, -3)), target_filter={7, 10**12})
