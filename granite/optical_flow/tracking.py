@@ -26,7 +26,6 @@ from granite.optical_flow.patch import (
     patch_increment,
     patch_zncc,
     pattern_radius,
-    template_workspace,
 )
 
 #: Gauss-Newton stops early once a step is below 0.01 pixels on the creation level of a patch
