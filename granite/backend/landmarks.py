@@ -338,7 +338,10 @@ class LandmarkDatabase:
             raise ValueError("add_observations: landmark_ids, uvs and levels differ in length")
         obs_dicts = self._obs
         ids_list = ids.tolist()
-        known = [k for k, i in enumerate(ids_list) if i in obs_dicts]
+        if self._row_of is not None:
+            known = np.flatnonzero(self._rows(ids) >= 0).tolist()
+        else:
+            known = [k for k, i in enumerate(ids_list) if i in obs_dicts]
         if len(known) != n:
             if not skip_unknown:
                 raise KeyError("observation of unknown landmark "
@@ -352,6 +355,18 @@ class LandmarkDatabase:
             raise ValueError(f"observations in frame {fid} are not finite")
         self._slots.flush()
         base = self._slots.next_slot
+        in_frame = self._obs_in_frame.get(fid)
+        if not in_frame and len(set(ids_list)) == n:
+            # the usual case, a new frame: no landmark has an observation in it yet and no id
+            # repeats, so every observation gets the next slot
+            for d, slot in zip(map(obs_dicts.__getitem__, ids_list), range(base, base + n)):
+                d[fid] = slot
+            if in_frame is None:
+                in_frame = self._obs_in_frame[fid] = set()
+            in_frame.update(ids_list)
+            self._slots.extend(ids, fid, uvs, lv)
+            self._version += 1
+            return n
         nxt = base
         new_rows: list[int] = []
         replaced: list[tuple[int, int]] = []
@@ -364,7 +379,6 @@ class LandmarkDatabase:
                 new_rows.append(k)
             else:
                 replaced.append((slot, k))
-        in_frame = self._obs_in_frame.get(fid)
         if in_frame is None:
             in_frame = self._obs_in_frame[fid] = set()
         in_frame.update(ids_list)
