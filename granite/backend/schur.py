@@ -242,6 +242,17 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
                 pc = slot_pose[c]
                 if pa > pc:
                     continue
+                if pa == pc:
+                    # G_a^T G_a: entries (c1, c2) and (c2, c1) are the same products summed in
+                    # the same order, so bit for bit equal: only c2 >= c1 is accumulated (the
+                    # assembly below reads the other half from there)
+                    for c1 in range(6):
+                        x0 = G[a, 0, c1]
+                        x1 = G[a, 1, c1]
+                        x2 = G[a, 2, c1]
+                        for c2 in range(c1, 6):
+                            Sb[pa, pa, c1, c2] += x0 * G[a, 0, c2] + x1 * G[a, 1, c2] + x2 * G[a, 2, c2]
+                    continue
                 for c1 in range(6):
                     x0 = G[a, 0, c1]
                     x1 = G[a, 1, c1]
@@ -257,7 +268,10 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
             for c1 in range(6):
                 for c2 in range(6):
                     x = Hb[p1, p2, c1, c2]
-                    y = x - Sb[p1, p2, c1, c2]
+                    if p1 == p2 and c1 > c2:
+                        y = x - Sb[p1, p1, c2, c1]
+                    else:
+                        y = x - Sb[p1, p2, c1, c2]
                     H[6 * p1 + c1, 6 * p2 + c2] = x
                     H[6 * p2 + c2, 6 * p1 + c1] = x
                     Hr[6 * p1 + c1, 6 * p2 + c2] = y
