@@ -227,3 +227,58 @@ def test_shared_workspace_views():
     assert np.all(ws.r[:4] == 1.0)
     with pytest.raises(ValueError):
         ws.view(11)
+
+
+@pytest.mark.parametrize("id_base", [0, -5, 1 << 40])  # table lookups; negative / huge ids
+def test_state_rows_compact_and_removed_landmarks_keep_their_state(id_base):
+    """Landmark states live in rows of arrays: thousands of removals compact the rows, the
+    landmark objects (views of the rows) follow, and packing still matches the reference."""
+    rng = np.random.default_rng(7)
+    db = LandmarkDatabase()
+    frames = [1, 2, 3]
+    index = {f: i for i, f in enumerate(frames)}
+    alive: dict[int, tuple] = {}
+    removed = []
+    for k in range(3000):
+        lm_id = id_base + k
+        bearing = rng.normal(size=3) + [0, 0, 3]
+        db.add_landmark(lm_id, int(rng.choice(frames)), bearing, float(rng.uniform(0, 1)))
+        db.add_observation(lm_id, int(rng.choice(frames)), rng.uniform(0, 640, size=2), 0)
+        L = db.landmark(lm_id)
+        alive[lm_id] = (L.s.copy(), L.inv_dist)
+        if k % 4:  # three of four leave again: the dead rows outnumber the live ones
+            victim = int(rng.choice(list(alive)))
+            obj = db.landmark(victim)
+            db.remove_landmark(victim)
+            removed.append((obj, alive.pop(victim)))
+    assert len(db) == len(alive) and db._store.n < 3000  # compacted at least once
+    for lm_id, (s, d) in alive.items():
+        L = db.landmark(lm_id)
+        np.testing.assert_array_equal(L.s, s)
+        assert L.inv_dist == d
+    for obj, (s, d) in removed[:50]:
+        np.testing.assert_array_equal(obj.s, s)
+        assert obj.inv_dist == d
+    ids = sorted(alive)
+    np.testing.assert_array_equal(db.inverse_distances(ids + [id_base - 1]),
+                                  [alive[i][1] for i in ids] + [np.nan])
+    pk = _assert_pack_equal(db, index)
+    pk.lm_d *= 0.5
+    db.unpack_states(pk)
+    assert db.landmark(ids[0]).inv_dist == alive[ids[0]][1] * 0.5
+    _assert_pack_equal(db, index, ids[::7])
+    with pytest.raises(KeyError):
+        db.pack(index, [id_base - 1])
+
+
+def test_pack_with_spread_out_frame_ids_matches_reference():
+    rng = np.random.default_rng(8)
+    db = LandmarkDatabase()
+    frames = [0, 7, 10**12, -3]
+    for lm_id in range(40):
+        db.add_landmark(lm_id, int(rng.choice(frames)), rng.normal(size=3) + [0, 0, 3], 0.5)
+        for f in rng.choice(frames, size=3, replace=False).tolist():
+            db.add_observation(lm_id, f, rng.uniform(0, 640, size=2), 1)
+    index = {f: i for i, f in enumerate(frames)}
+    _assert_pack_equal(db, index)
+    _assert_pack_equal(db, index, list(range(39, -1, -3)), target_filter={7, 10**12})

@@ -13,25 +13,92 @@ created on (weight ``2**-c``, paper Eq. 7).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Iterable
 
 import numpy as np
 
 from granite.backend.observation_store import Observation, ObservationSlots
-from granite.backend.packing import PackedObservations, gather_bearings, pack_structure
+from granite.backend.packing import PackedObservations, pack_structure
 from granite.backend.stereographic import bearings_from_stereo, stereo_from_bearing
 
 
-@dataclasses.dataclass
+class _StateStore:
+    """Landmark states in growable arrays, one row per landmark: stereographic bearing ``s``
+    (2,), inverse distance ``d`` and host frame id; rows ``[0, n)`` are in use."""
+
+    __slots__ = ("s", "d", "host", "n")
+
+    def __init__(self, capacity: int = 256) -> None:
+        self.s = np.empty((capacity, 2))
+        self.d = np.empty(capacity)
+        self.host = np.empty(capacity, dtype=np.int64)
+        self.n = 0
+
+    def append(self, host: int, s: np.ndarray, d: float) -> int:
+        row = self.n
+        if row == self.d.shape[0]:
+            cap = 2 * row
+            for name in ("s", "d", "host"):
+                old = getattr(self, name)
+                new = np.empty((cap,) + old.shape[1:], dtype=old.dtype)
+                new[:row] = old
+                setattr(self, name, new)
+        self.s[row] = s
+        self.d[row] = d
+        self.host[row] = host
+        self.n = row + 1
+        return row
+
+
 class Landmark:
     """State of one landmark: host keyframe id, stereographic bearing ``s`` (2,) in the host
-    camera frame and inverse distance ``inv_dist`` (``>= 0``, 0 = at infinity)."""
+    camera frame and inverse distance ``inv_dist`` (``>= 0``, 0 = at infinity).
 
-    host_frame_id: int
-    s: np.ndarray
-    inv_dist: float
+    A landmark of a :class:`LandmarkDatabase` is a view of one row of the database's state
+    arrays (``s`` is a (2,) view of it: editing it in place edits the database; assigning
+    ``s`` or ``inv_dist`` writes the row); one removed from its database keeps its last
+    state. ``Landmark(host, s, inv_dist)`` makes a standalone one."""
+
+    __slots__ = ("host_frame_id", "_store", "_row")
+
+    def __init__(self, host_frame_id: int, s: np.ndarray, inv_dist: float) -> None:
+        self.host_frame_id = int(host_frame_id)
+        self._store = _StateStore(1)
+        self._row = self._store.append(self.host_frame_id, s, inv_dist)
+
+    @classmethod
+    def _of(cls, store: _StateStore, row: int) -> Landmark:
+        lm = object.__new__(cls)
+        lm.host_frame_id = int(store.host[row])
+        lm._store = store
+        lm._row = row
+        return lm
+
+    def _detach(self) -> None:
+        """Keep the current state in a private store (the landmark left its database)."""
+        st = self._store
+        self._store = _StateStore(1)
+        self._row = self._store.append(self.host_frame_id, st.s[self._row], st.d[self._row])
+
+    @property
+    def s(self) -> np.ndarray:
+        return self._store.s[self._row]
+
+    @s.setter
+    def s(self, value) -> None:
+        self._store.s[self._row] = value
+
+    @property
+    def inv_dist(self) -> float:
+        return float(self._store.d[self._row])
+
+    @inv_dist.setter
+    def inv_dist(self, value: float) -> None:
+        self._store.d[self._row] = value
+
+    def __repr__(self) -> str:
+        return f"Landmark(host_frame_id={self.host_frame_id}, s={self.s!r}, inv_dist={self.inv_dist!r})"
 
     @property
     def bearing(self) -> np.ndarray:
@@ -44,6 +111,12 @@ class Landmark:
         if self.inv_dist <= 0.0:
             return np.where(b == 0.0, 0.0, np.sign(b) * np.inf)
         return b / self.inv_dist
+
+
+#: Landmark ids below this (and not negative) are looked up in a table indexed by id (the
+#: frontend's track ids are small consecutive integers); any other id switches the database to
+#: dictionary lookups.
+_MAX_TABLE_ID = 1 << 24
 
 
 def _uv_pair(uv) -> tuple[float, float]:
@@ -65,7 +138,10 @@ class LandmarkDatabase:
     slot order is the order in which its observations were added (a replaced observation
     keeps its place), which is the order :meth:`pack` uses. Dead slots are compacted away when
     they outnumber the live ones and exceed ``compact_threshold`` (memory only: packing gives
-    the same arrays either way).
+    the same arrays either way). The landmark states (bearing, inverse distance, host) are rows
+    of arrays (:class:`Landmark` objects are views of them), so packing, unpacking and the
+    per-id queries are vectorised gathers; ids that are small non-negative integers (track
+    ids) are found through a table indexed by id, other ids through the dictionary.
     """
 
     def __init__(self, compact_threshold: int = 4096) -> None:
@@ -77,15 +153,52 @@ class LandmarkDatabase:
         self._slots = ObservationSlots()
         self._version = 0  # bumped on every change of landmarks / observations (not states)
         self._pack_cache: tuple | None = None
-        self._s_store: tuple[list[np.ndarray], np.ndarray] | None = None
+        # landmark states: one row per landmark (rows of removed ones are dead until the
+        # store is compacted), and the row of each id (-1: none) while ids fit a table
+        self._store = _StateStore()
+        self._row_of: np.ndarray | None = np.full(1024, -1, dtype=np.int64)
 
     def __getstate__(self) -> dict:
-        """Pickle / deepcopy without the caches (the bearing store relies on object identity
-        of row views, which copies do not preserve)."""
+        """Pickle / deepcopy without the cache of the packed structure."""
         state = self.__dict__.copy()
         state["_pack_cache"] = None
-        state["_s_store"] = None
         return state
+
+    def _rows(self, ids: np.ndarray) -> np.ndarray:
+        """State rows (n,) of landmark ids (n,) int64; -1 for ids that are not landmarks."""
+        table = self._row_of
+        if table is None:
+            lms = self._landmarks
+            return np.array([lms[i]._row if i in lms else -1 for i in ids.tolist()],
+                            dtype=np.int64).reshape(-1)
+        inside = (ids >= 0) & (ids < table.shape[0])
+        if inside.all():
+            return table[ids]
+        return np.where(inside, table[np.where(inside, ids, 0)], -1)
+
+    def _compact_states(self) -> None:
+        """Drop the rows of removed landmarks (order kept); renumbers the landmark views."""
+        st = self._store
+        lms = list(self._landmarks.values())
+        rows = np.array([lm._row for lm in lms], dtype=np.int64)
+        order = np.argsort(rows, kind="stable")
+        new = _StateStore(max(256, 2 * len(lms)))
+        n = len(lms)
+        keep = rows[order]
+        new.s[:n] = st.s[keep]
+        new.d[:n] = st.d[keep]
+        new.host[:n] = st.host[keep]
+        new.n = n
+        for r, k in enumerate(order.tolist()):
+            lm = lms[k]
+            lm._store = new
+            lm._row = r
+        self._store = new
+        if self._row_of is not None:
+            self._row_of[:] = -1
+            ids = np.fromiter(self._landmarks.keys(), dtype=np.int64, count=n)
+            self._row_of[ids[order]] = np.arange(n, dtype=np.int64)
+        self._pack_cache = None
 
     # ----------------------------------------------------------------- landmarks
     def __contains__(self, landmark_id: int) -> bool:
@@ -110,7 +223,23 @@ class LandmarkDatabase:
             raise ValueError(f"landmark {landmark_id}: inverse distance must be >= 0, "
                              f"got {inv_dist}")
         s = stereo_from_bearing(np.asarray(bearing, dtype=np.float64).reshape(3))
-        self._landmarks[landmark_id] = Landmark(int(host_frame_id), s, float(inv_dist))
+        st = self._store
+        if st.n - len(self._landmarks) > max(1024, len(self._landmarks)):
+            self._compact_states()
+            st = self._store
+        row = st.append(int(host_frame_id), s, float(inv_dist))
+        self._landmarks[landmark_id] = Landmark._of(st, row)
+        table = self._row_of
+        if table is not None:
+            lid = int(landmark_id)
+            if 0 <= lid < _MAX_TABLE_ID and lid == landmark_id:
+                if lid >= table.shape[0]:
+                    grown = np.full(max(2 * table.shape[0], lid + 1), -1, dtype=np.int64)
+                    grown[:table.shape[0]] = table
+                    self._row_of = table = grown
+                table[lid] = row
+            else:
+                self._row_of = None
         self._obs[landmark_id] = {}
         self._hosted.setdefault(int(host_frame_id), set()).add(landmark_id)
         self._version += 1
@@ -128,6 +257,9 @@ class LandmarkDatabase:
             self._obs_in_frame[frame_id].discard(landmark_id)
             self._slots.kill(slot)
         self._hosted[lm.host_frame_id].discard(landmark_id)
+        if self._row_of is not None:
+            self._row_of[landmark_id] = -1
+        lm._detach()
         self._version += 1
 
     def hosted_by(self, frame_id: int) -> set[int]:
@@ -139,19 +271,27 @@ class LandmarkDatabase:
         ids = self._obs_in_frame.get(frame_id)
         if not ids:
             return 0, 0
-        lms = self._landmarks
-        finite = sum([lms[i].inv_dist > 0.0 for i in ids])
+        rows = self._rows(np.fromiter(ids, dtype=np.int64, count=len(ids)))
+        finite = int(np.count_nonzero(self._store.d[rows] > 0.0))
         return finite, len(ids) - finite
 
     def inverse_distances(self, landmark_ids) -> np.ndarray:
         """Inverse distances (n,) of the given ids, NaN for ids that are not landmarks."""
-        lms = self._landmarks
-        nan = math.nan
-        out: list[float] = []
-        for i in np.asarray(landmark_ids, dtype=np.int64).reshape(-1).tolist():
-            lm = lms.get(i)
-            out.append(nan if lm is None else lm.inv_dist)
-        return np.array(out, dtype=np.float64)
+        rows = self._rows(np.asarray(landmark_ids, dtype=np.int64).reshape(-1))
+        out = np.full(rows.shape[0], math.nan)
+        known = rows >= 0
+        out[known] = self._store.d[rows[known]]
+        return out
+
+    def states_of(self, landmark_ids) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(s (n, 2), inv_dist (n,), host frame ids (n,))`` of the given ids (copies;
+        ``KeyError`` for an id that is not a landmark)."""
+        ids = np.asarray(landmark_ids, dtype=np.int64).reshape(-1)
+        rows = self._rows(ids)
+        if np.any(rows < 0):
+            raise KeyError(int(ids[np.flatnonzero(rows < 0)[0]]))
+        st = self._store
+        return st.s[rows], st.d[rows], st.host[rows]
 
     def landmarks_of(self, landmark_ids) -> list[Landmark]:
         """The landmarks of the given ids (``KeyError`` for an unknown one), in order."""
@@ -198,7 +338,10 @@ class LandmarkDatabase:
             raise ValueError("add_observations: landmark_ids, uvs and levels differ in length")
         obs_dicts = self._obs
         ids_list = ids.tolist()
-        known = [k for k, i in enumerate(ids_list) if i in obs_dicts]
+        if self._row_of is not None:
+            known = np.flatnonzero(self._rows(ids) >= 0).tolist()
+        else:
+            known = [k for k, i in enumerate(ids_list) if i in obs_dicts]
         if len(known) != n:
             if not skip_unknown:
                 raise KeyError("observation of unknown landmark "
@@ -212,6 +355,18 @@ class LandmarkDatabase:
             raise ValueError(f"observations in frame {fid} are not finite")
         self._slots.flush()
         base = self._slots.next_slot
+        in_frame = self._obs_in_frame.get(fid)
+        if not in_frame and len(set(ids_list)) == n:
+            # the usual case, a new frame: no landmark has an observation in it yet and no id
+            # repeats, so every observation gets the next slot
+            for d, slot in zip(map(obs_dicts.__getitem__, ids_list), range(base, base + n)):
+                d[fid] = slot
+            if in_frame is None:
+                in_frame = self._obs_in_frame[fid] = set()
+            in_frame.update(ids_list)
+            self._slots.extend(ids, fid, uvs, lv)
+            self._version += 1
+            return n
         nxt = base
         new_rows: list[int] = []
         replaced: list[tuple[int, int]] = []
@@ -224,7 +379,6 @@ class LandmarkDatabase:
                 new_rows.append(k)
             else:
                 replaced.append((slot, k))
-        in_frame = self._obs_in_frame.get(fid)
         if in_frame is None:
             in_frame = self._obs_in_frame[fid] = set()
         in_frame.update(ids_list)
@@ -303,16 +457,21 @@ class LandmarkDatabase:
         if cache is not None and cache[0] == key:
             struct = cache[1]
         else:
-            struct = pack_structure(self._landmarks, self._slots, frame_index, ids,
-                                    target_filter)
+            ids_arr = np.array(sorted(self._landmarks) if ids is None else ids,
+                               dtype=np.int64).reshape(-1)
+            rows = self._rows(ids_arr)
+            if np.any(rows < 0):
+                raise KeyError(int(ids_arr[np.flatnonzero(rows < 0)[0]]))
+            struct = (ids_arr, rows) + pack_structure(ids_arr, self._store.host[rows],
+                                                      self._slots, frame_index, target_filter)
             self._pack_cache = (key, struct)
-        ids_arr, lms, lm_host, lm_ptr, obs_lm, obs_tgt, obs_uv, obs_level = struct
-        m = len(lms)
+        ids_arr, rows, lm_host, lm_ptr, obs_lm, obs_tgt, obs_uv, obs_level = struct
+        st = self._store
         return PackedObservations(
             landmark_ids=ids_arr.copy(),
             lm_host=lm_host.copy(),
-            lm_s=gather_bearings(lms, self._s_store),
-            lm_d=np.fromiter([lm.inv_dist for lm in lms], dtype=np.float64, count=m),
+            lm_s=st.s[rows],
+            lm_d=st.d[rows],
             lm_ptr=lm_ptr.copy(),
             obs_lm=obs_lm.copy(),
             obs_tgt=obs_tgt.copy(),
@@ -321,14 +480,11 @@ class LandmarkDatabase:
         )
 
     def unpack_states(self, packed: PackedObservations) -> None:
-        """Write the landmark states (``lm_s``, ``lm_d``) of a packed problem back. Each
-        landmark's ``s`` becomes a row view of one private copy of ``packed.lm_s``."""
-        store = np.array(packed.lm_s, dtype=np.float64, order="C", copy=True)
-        views = list(store)
-        lms = self._landmarks
-        for lm_id, s, d in zip(packed.landmark_ids.tolist(), views, packed.lm_d.tolist()):
-            lm = lms[lm_id]
-            lm.s = s
-            lm.inv_dist = d
-        self._s_store = (views, store)
-
+        """Write the landmark states (``lm_s``, ``lm_d``) of a packed problem back."""
+        ids = np.asarray(packed.landmark_ids, dtype=np.int64).reshape(-1)
+        rows = self._rows(ids)
+        if np.any(rows < 0):
+            raise KeyError(int(ids[np.flatnonzero(rows < 0)[0]]))
+        st = self._store
+        st.s[rows] = packed.lm_s
+        st.d[rows] = packed.lm_d

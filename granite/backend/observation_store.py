@@ -120,6 +120,12 @@ class ObservationSlots:
         """Slot numbers of the live observations in the arrays (call after :meth:`flush`)."""
         return np.flatnonzero(self._alive[:self._n_flushed])
 
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """Views ``(alive, landmark ids, frame ids, uv, levels)`` of the slots in the arrays
+        (call after :meth:`flush`; valid until the next change)."""
+        n = self._n_flushed
+        return self._alive[:n], self._lm[:n], self._frame[:n], self._uv[:n], self._level[:n]
+
     def landmark_ids(self, slots: np.ndarray) -> np.ndarray:
         return self._lm[slots]
 

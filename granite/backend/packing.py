@@ -8,8 +8,8 @@ by landmark, pose indices instead of frame ids.
 from __future__ import annotations
 
 import dataclasses
-import operator
 
+import numba
 import numpy as np
 
 from granite.backend.observation_store import ObservationSlots
@@ -43,54 +43,120 @@ class PackedObservations:
         return int(self.obs_lm.shape[0])
 
 
-def pack_structure(landmarks: dict, slots: ObservationSlots, frame_index: dict[int, int],
-                   ids: list[int] | None, target_filter: set[int] | None) -> tuple:
-    """The observation structure of a packed problem (everything but the landmark states):
-    ``(landmark_ids, landmarks, lm_host, lm_ptr, obs_lm, obs_tgt, obs_uv, obs_level)``.
-    ``landmarks`` maps id -> :class:`~granite.backend.landmarks.Landmark`; ``slots`` must be
-    flushed."""
-    if ids is None:
-        ids = sorted(landmarks)
-    lms = [landmarks[i] for i in ids]
-    m = len(ids)
-    ids_arr = np.array(ids, dtype=np.int64).reshape(m)
-    lm_host = np.array([frame_index[lm.host_frame_id] for lm in lms],
-                       dtype=np.int64).reshape(m)
-    live = slots.live_slots()
-    # landmark row of every live slot (or none)
-    o_lm = slots.landmark_ids(live)
-    sorter = np.argsort(ids_arr, kind="stable")
-    sorted_ids = ids_arr[sorter]
-    pos = np.minimum(np.searchsorted(sorted_ids, o_lm), max(m - 1, 0))
-    ok = sorted_ids[pos] == o_lm if m else np.zeros(live.shape[0], dtype=bool)
-    row = sorter[pos] if m else pos
-    # pose index of the observing frame (or none)
+def pack_structure(ids_arr: np.ndarray, host_frames: np.ndarray, slots: ObservationSlots,
+                   frame_index: dict[int, int], target_filter: set[int] | None) -> tuple:
+    """The observation structure of a packed problem (everything but the landmark states) of
+    the landmarks ``ids_arr`` (M,) hosted by the frames ``host_frames`` (M,):
+    ``(lm_host, lm_ptr, obs_lm, obs_tgt, obs_uv, obs_level)``. ``slots`` must be flushed;
+    ``KeyError`` when a host is not in ``frame_index``. The observations of a landmark are
+    in slot order; a landmark listed twice gets them at its first place."""
+    m = ids_arr.shape[0]
     nf = len(frame_index)
     f_ids = np.fromiter(frame_index.keys(), dtype=np.int64, count=nf)
     f_pos = np.fromiter(frame_index.values(), dtype=np.int64, count=nf)
     f_sort = np.argsort(f_ids, kind="stable")
     f_ids, f_pos = f_ids[f_sort], f_pos[f_sort]
-    o_frame = slots.frame_ids(live)
-    fp = np.minimum(np.searchsorted(f_ids, o_frame), max(nf - 1, 0))
-    ok &= (f_ids[fp] == o_frame) if nf else False
-    if target_filter is not None:
-        flt = np.fromiter((int(f) for f in target_filter), dtype=np.int64)
-        ok &= np.isin(o_frame, flt)
-    sel = np.flatnonzero(ok)
-    order = sel[np.argsort(row[sel], kind="stable")]
-    obs_lm = row[order]
-    obs_slots = live[order]
-    lm_ptr = np.zeros(m + 1, dtype=np.int64)
-    np.cumsum(np.bincount(obs_lm, minlength=m), out=lm_ptr[1:])
-    return (ids_arr, lms, lm_host, lm_ptr, obs_lm, f_pos[fp[order]],
-            slots.pixels(obs_slots), slots.levels(obs_slots))
+    hp = np.minimum(np.searchsorted(f_ids, host_frames), max(nf - 1, 0))
+    host_ok = (f_ids[hp] == host_frames) if nf else np.zeros(m, dtype=bool)
+    if not np.all(host_ok):
+        raise KeyError(int(host_frames[np.flatnonzero(~host_ok)[0]]))
+    lm_host = f_pos[hp] if m else np.zeros(0, dtype=np.int64)
+    flt = np.zeros(0, dtype=np.int64) if target_filter is None else \
+        np.fromiter((int(f) for f in target_filter), dtype=np.int64)
+    alive, o_lm, o_frame, o_uv, o_level = slots.arrays()
+    lm_ptr, obs_lm, obs_tgt, obs_uv, obs_level = _pack_observations(
+        alive, o_lm, o_frame, o_uv, o_level, ids_arr, f_ids, f_pos, target_filter is not None,
+        flt)
+    return lm_host, lm_ptr, obs_lm, obs_tgt, obs_uv, obs_level
 
 
-def gather_bearings(lms: list, store: tuple[list[np.ndarray], np.ndarray] | None) -> np.ndarray:
-    """Stereographic bearings (M, 2) of landmarks. Fast path: the bearings are still the row
-    views of ``store`` written by the last unpack (in the same order)."""
-    ss = [lm.s for lm in lms]
-    if (store is not None and len(store[0]) == len(ss) > 0
-            and all(map(operator.is_, ss, store[0])) and ss[0].base is store[1]):
-        return store[1].copy()
-    return np.array(ss, dtype=np.float64).reshape(len(ss), 2)
+@numba.njit(cache=True, nogil=True)
+def _pack_observations(alive, o_lm, o_frame, o_uv, o_level, ids, f_ids, f_pos, use_filter, flt):
+    """The live slots observing a listed landmark (``ids``; the first place of an id listed
+    twice) in a listed frame (``f_ids``, pose ``f_pos``; and in ``flt`` with ``use_filter``),
+    grouped by landmark place in slot order (a counting sort): ``(lm_ptr, obs_lm, obs_tgt,
+    obs_uv, obs_level)``. Ids are looked up in tables over their range (a sorted search when
+    the landmark ids are too spread out for one)."""
+    n = alive.shape[0]
+    m = ids.shape[0]
+    nf = f_ids.shape[0]
+    counts = np.zeros(m + 1, dtype=np.int64)
+    row = np.full(n, -1, dtype=np.int64)
+    tgt = np.empty(n, dtype=np.int64)
+    if m > 0 and nf > 0:
+        # frames: pose index (or -1: not listed or filtered out), in a table over the range
+        # of the listed frame ids, or found by a sorted search when they are spread out
+        f_lo = f_ids.min()
+        f_span = f_ids.max() - f_lo + 1
+        f_dense = f_span <= 4 * (nf + n) + 4096
+        f_sorted = np.sort(f_ids)
+        f_at = f_pos[np.argsort(f_ids, kind="mergesort")]
+        if use_filter:
+            flt_sorted = np.sort(flt)
+            for q in range(nf):
+                p = np.searchsorted(flt_sorted, f_sorted[q])
+                if p >= flt_sorted.shape[0] or flt_sorted[p] != f_sorted[q]:
+                    f_at[q] = -1
+        f_table = np.full(f_span if f_dense else 0, -1, dtype=np.int64)
+        if f_dense:
+            for q in range(nf):
+                f_table[f_sorted[q] - f_lo] = f_at[q]
+        lo = ids.min()
+        span = ids.max() - lo + 1
+        dense = span <= 4 * (m + n) + 4096
+        if dense:
+            table = np.full(span, -1, dtype=np.int64)
+            for i in range(m - 1, -1, -1):
+                table[ids[i] - lo] = i
+        else:
+            sorter = np.argsort(ids, kind="mergesort")
+            sorted_ids = ids[sorter]
+        for k in range(n):
+            if not alive[k]:
+                continue
+            if f_dense:
+                f = o_frame[k] - f_lo
+                if f < 0 or f >= f_span:
+                    continue
+                t = f_table[f]
+            else:
+                p = np.searchsorted(f_sorted, o_frame[k])
+                if p >= nf or f_sorted[p] != o_frame[k]:
+                    continue
+                t = f_at[p]
+            if t < 0:
+                continue
+            if dense:
+                x = o_lm[k] - lo
+                if x < 0 or x >= span:
+                    continue
+                i = table[x]
+                if i < 0:
+                    continue
+            else:
+                p = np.searchsorted(sorted_ids, o_lm[k])
+                if p >= m or sorted_ids[p] != o_lm[k]:
+                    continue
+                i = sorter[p]
+            row[k] = i
+            tgt[k] = t
+            counts[i + 1] += 1
+    lm_ptr = np.cumsum(counts)
+    total = lm_ptr[m]
+    obs_lm = np.empty(total, dtype=np.int64)
+    obs_tgt = np.empty(total, dtype=np.int64)
+    obs_uv = np.empty((total, 2))
+    obs_level = np.empty(total, dtype=np.int64)
+    fill = lm_ptr[:m].copy()
+    for k in range(n):
+        i = row[k]
+        if i < 0:
+            continue
+        j = fill[i]
+        fill[i] = j + 1
+        obs_lm[j] = i
+        obs_tgt[j] = tgt[k]
+        obs_uv[j, 0] = o_uv[k, 0]
+        obs_uv[j, 1] = o_uv[k, 1]
+        obs_level[j] = o_level[k]
+    return lm_ptr, obs_lm, obs_tgt, obs_uv, obs_level

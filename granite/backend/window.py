@@ -170,12 +170,9 @@ class SlidingWindow:
     def landmark_points(self, landmark_ids, T_x_w: np.ndarray | None = None) -> np.ndarray:
         """Euclidean points (n, 3) of landmarks with ``d > 0`` in frame x (``T_x_w`` maps world
         into x; the world frame without it), vectorised and grouped by host keyframe."""
-        lms = self.landmarks.landmarks_of(landmark_ids)
-        if not lms:
+        s, d, hosts = self.landmarks.states_of(landmark_ids)
+        if not len(d):
             return np.zeros((0, 3))
-        s = np.array([lm.s for lm in lms], dtype=np.float64).reshape(-1, 2)
-        d = np.array([lm.inv_dist for lm in lms])
-        hosts = np.array([lm.host_frame_id for lm in lms])
         p_h = bearings_from_stereo(s) / d[:, None]
         out = np.empty_like(p_h)
         for host in np.unique(hosts):

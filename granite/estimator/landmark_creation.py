@@ -90,10 +90,10 @@ class LandmarkTriangulator:
         win = self.window
         db = win.landmarks
         T_w_c = win.pose(frame_id)
-        for lm_id in list(db.observed_in(frame_id)):
+        ids = np.fromiter(db.observed_in(frame_id), dtype=np.int64)
+        _, inv, hosts = db.states_of(ids)
+        for lm_id in ids[~(inv > 0.0) & (hosts != frame_id)].tolist():
             lm = db.landmark(lm_id)
-            if lm.inv_dist > 0.0 or lm.host_frame_id == frame_id:
-                continue
             T_w_h = win.pose(lm.host_frame_id)
             if np.linalg.norm(T_w_c[:3, 3] - T_w_h[:3, 3]) < self.min_baseline:
                 continue

@@ -19,5 +19,5 @@ class FrameTracks:
 
     @classmethod
     def from_result(cls, result: OpticalFlowResult) -> FrameTracks:
-        return cls({int(t): p for t, p in zip(result.ids, result.positions)},
-                   {int(t): int(c) for t, c in zip(result.ids, result.levels)})
+        ids = result.ids.tolist()
+        return cls(dict(zip(ids, result.positions)), dict(zip(ids, result.levels.tolist())))

@@ -102,10 +102,10 @@ class MonocularVO:
     def window_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
         """Finite landmarks of the window: world points (M, 3) and inverse distances (M,)."""
         db = self.window.landmarks
-        ids = [i for host in self.window.keyframe_ids for i in sorted(db.hosted_by(host))]
+        ids = np.array([i for host in self.window.keyframe_ids for i in sorted(db.hosted_by(host))],
+                       dtype=np.int64)
         inv = db.inverse_distances(ids)
-        finite = [i for i, d in zip(ids, inv) if d > 0.0]
-        return self.window.landmark_points(finite), inv[inv > 0.0]
+        return self.window.landmark_points(ids[inv > 0.0]), inv[inv > 0.0]
 
     def _skipped(self, timestamp: float, frame_id: int, tracks: OpticalFlowResult | None,
                  start: float | None) -> FrameOutput:

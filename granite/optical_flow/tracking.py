@@ -22,11 +22,10 @@ from granite.optical_flow.local_flow import local_guesses
 from granite.optical_flow.patch import (
     AUX_ROWS,
     in_bounds,
-    make_template,
+    make_template_at,
     patch_increment,
     patch_zncc,
     pattern_radius,
-    template_workspace,
 )
 
 #: Gauss-Newton stops early once a step is below 0.01 pixels on the creation level of a patch
@@ -38,9 +37,12 @@ _MIN_STEP_SQ_COARSE = 0.1**2
 
 @njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
 def track_level(
-    buf, off, w, h, tx, ty, theta, pattern, radius, margin, iterations, min_step_sq, state, data, valid, jac, aux
+    buf, off, w, h, tx, ty, theta, pattern, radius, margin, iterations, min_step_sq, state, data, valid, jac, aux,
+    pt, lv,
 ):
-    """Refine the warp (tx, ty, theta) (level pixels) of one template. Returns (ok, tx, ty, theta).
+    """Refine the warp (tx, ty, theta) (level pixels) of one template (point ``pt``, level
+    ``lv`` of the template arrays, see :func:`granite.optical_flow.patch.make_template_at`).
+    Returns (ok, tx, ty, theta).
 
     Stops early once a step moves the patch by less than ``sqrt(min_step_sq)`` level pixels
     (translation plus rotation times a 5 px lever arm).
@@ -49,7 +51,7 @@ def track_level(
     s = math.sin(theta)
     for _ in range(iterations):
         ok, d0, d1, d2 = patch_increment(
-            buf, off, w, h, tx, ty, c, s, pattern, radius, margin, state, data, valid, jac, aux
+            buf, off, w, h, tx, ty, c, s, pattern, radius, margin, state, data, valid, jac, aux, pt, lv
         )
         if not ok:
             return False, tx, ty, theta
@@ -79,6 +81,44 @@ def track_level(
 
 
 @njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def track_point_at(
+    buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+    x0, y0, gx, gy, level, pattern, radius, margin, iterations, st, data, valid, jac, aux, pt,
+    top=-1,
+):
+    """:func:`track_point` with the templates of point ``pt`` of template arrays of many points
+    (``st`` (N, L), ``data`` (N, L, P), ``valid`` (N, L, P), ``jac`` (N, L, P, 3), ``aux``
+    (N, L, 5, 3)), read and written without making views of them."""
+    tx = gx
+    ty = gy
+    theta = 0.0
+    n_levels = offs_a.shape[0]
+    first = n_levels - 1 if top < 0 else min(top, n_levels - 1)
+    for lvl in range(first, level - 1, -1):
+        scale = float(1 << lvl)
+        if st[pt, lvl] < 0:
+            st[pt, lvl] = make_template_at(
+                buf_a, offs_a[lvl], ws_a[lvl], hs_a[lvl], x0 / scale, y0 / scale,
+                pattern, margin, data, valid, jac, aux, pt, lvl,
+            )
+        ok = st[pt, lvl] > 0
+        if ok:
+            ok, nx, ny, nt = track_level(
+                buf_b, offs_b[lvl], ws_b[lvl], hs_b[lvl], tx / scale, ty / scale, theta,
+                pattern, radius, margin, iterations,
+                _MIN_STEP_SQ if lvl == level else _MIN_STEP_SQ_COARSE,
+                st[pt, lvl], data, valid, jac, aux, pt, lvl,
+            )
+            if ok:
+                tx = nx * scale
+                ty = ny * scale
+                theta = nt
+        if not ok and lvl <= level + 1:
+            return False, tx, ty, theta
+    return True, tx, ty, theta
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
 def track_point(
     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
     x0, y0, gx, gy, level, pattern, radius, margin, iterations, st, data, valid, jac, aux,
@@ -94,33 +134,23 @@ def track_point(
     yet: computed here and stored). ``top`` >= 0 starts at that level instead of the
     coarsest.
     """
-    tx = gx
-    ty = gy
-    theta = 0.0
-    n_levels = offs_a.shape[0]
-    first = n_levels - 1 if top < 0 else min(top, n_levels - 1)
-    for lvl in range(first, level - 1, -1):
-        scale = float(1 << lvl)
-        if st[lvl] < 0:
-            st[lvl] = make_template(
-                buf_a, offs_a[lvl], ws_a[lvl], hs_a[lvl], x0 / scale, y0 / scale,
-                pattern, margin, data[lvl], valid[lvl], jac[lvl], aux[lvl],
-            )
-        ok = st[lvl] > 0
-        if ok:
-            ok, nx, ny, nt = track_level(
-                buf_b, offs_b[lvl], ws_b[lvl], hs_b[lvl], tx / scale, ty / scale, theta,
-                pattern, radius, margin, iterations,
-                _MIN_STEP_SQ if lvl == level else _MIN_STEP_SQ_COARSE,
-                st[lvl], data[lvl], valid[lvl], jac[lvl], aux[lvl],
-            )
-            if ok:
-                tx = nx * scale
-                ty = ny * scale
-                theta = nt
-        if not ok and lvl <= level + 1:
-            return False, tx, ty, theta
-    return True, tx, ty, theta
+    return track_point_at(
+        buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+        x0, y0, gx, gy, level, pattern, radius, margin, iterations,
+        st.reshape((1,) + st.shape), data.reshape((1,) + data.shape),
+        valid.reshape((1,) + valid.shape), jac.reshape((1,) + jac.shape),
+        aux.reshape((1,) + aux.shape), 0, top,
+    )
+
+
+@njit(cache=True, nogil=True)
+def _one_point_templates(num_levels: int, num_samples: int):
+    """Template arrays of one point in the layout of :func:`new_template_cache`."""
+    return (np.empty((1, num_levels), dtype=np.int8),
+            np.empty((1, num_levels, num_samples), dtype=np.float32),
+            np.empty((1, num_levels, num_samples), dtype=np.bool_),
+            np.empty((1, num_levels, num_samples, 3), dtype=np.float32),
+            np.empty((1, num_levels, AUX_ROWS, 3), dtype=np.float32))
 
 
 def new_template_cache(num_points: int, num_levels: int, num_samples: int):
@@ -317,7 +347,8 @@ def _track_passes(
     n_levels = offs_a.shape[0]
     p = pattern.shape[0]
     has_guess = guess.shape[0] == n and n > 0
-    st_s, data_s, valid_s, jac_s, aux_s = template_workspace(n_levels, p)
+    # templates of points without a cached row: point 0 of one-point template arrays
+    st_s, data_s, valid_s, jac_s, aux_s = _one_point_templates(n_levels, p)
     radius = pattern_radius(pattern)
     for mode in order:
         flow_x = 0.0
@@ -365,17 +396,17 @@ def _track_passes(
             row = rows_a[k]
             top = lvl + _LOCAL_LEVELS_ABOVE if mode == PASS_LOCAL else -1
             if row >= 0:
-                ok, x1, y1, t1 = track_point(
+                ok, x1, y1, t1 = track_point_at(
                     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
                     x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, margin, iterations,
-                    st_a[row], data_a[row], valid_a[row], jac_a[row], aux_a[row], top,
+                    st_a, data_a, valid_a, jac_a, aux_a, row, top,
                 )
             else:
-                st_s[:] = -1
-                ok, x1, y1, t1 = track_point(
+                st_s[0, :] = -1
+                ok, x1, y1, t1 = track_point_at(
                     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
                     x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, margin, iterations,
-                    st_s, data_s, valid_s, jac_s, aux_s, top,
+                    st_s, data_s, valid_s, jac_s, aux_s, 0, top,
                 )
             if ok and per_point and min_zncc_guess > -1.0:
                 # The backward pass below starts near the start point, so a false match
@@ -390,7 +421,7 @@ def _track_passes(
                 else:
                     zn = patch_zncc(
                         buf_b, offs_b[lvl], ws_b[lvl], hs_b[lvl], x1 / scale, y1 / scale, t1,
-                        pattern, margin, data_s[lvl], valid_s[lvl],
+                        pattern, margin, data_s[0, lvl], valid_s[0, lvl],
                     )
                 score[k] = zn
                 ok = zn >= min_zncc_guess
@@ -402,10 +433,10 @@ def _track_passes(
             if not ok:
                 continue
             st_b[k, :] = -1  # templates at a new position
-            ok, xb, yb, _ = track_point(
+            ok, xb, yb, _ = track_point_at(
                 buf_b, offs_b, ws_b, hs_b, buf_a, offs_a, ws_a, hs_a,
                 x1, y1, x1 - flow_x, y1 - flow_y, lvl, pattern, radius, margin, iterations,
-                st_b[k], data_b[k], valid_b[k], jac_b[k], aux_b[k], top,
+                st_b, data_b, valid_b, jac_b, aux_b, k, top,
             )
             if not ok:
                 continue
@@ -413,7 +444,7 @@ def _track_passes(
             dist_sq = ((xb - x0) ** 2 + (yb - y0) ** 2) / (scale * scale)
             limit_sq = fb_threshold_sq
             if fb_var[lvl] > 0.0:
-                a = aux_a[row, lvl] if row >= 0 else aux_s[lvl]
+                a = aux_a[row, lvl] if row >= 0 else aux_s[0, lvl]
                 mean = float(a[4, 0])
                 limit_sq = min(max(fb_var[lvl] * translation_lambda_max(a) / (mean * mean), fb_threshold_sq), fb_max_sq)
             status[k] = dist_sq < limit_sq
