@@ -24,21 +24,19 @@ import numpy as np  # noqa: E402
 
 
 def _median_depths(ds) -> np.ndarray | None:
-    """Median valid rendered depth [m] per frame, or None without depth maps."""
-    folder = Path(ds.root) / "mav0" / "depth0" / "data"
-    if ds.timestamps_ns is None or not folder.is_dir():
-        return None
-    from simulation.depth import read_depth
+    """Median valid rendered depth [m] per frame (NaN where a frame has none), or None without
+    depth maps."""
+    from simulation.depth import depth_reader
 
+    depth_of = depth_reader(ds)
+    if depth_of is None:
+        return None
     out = np.full(len(ds), np.nan)
-    for i, ns in enumerate(ds.timestamps_ns):
-        for ext in (".npy", ".png"):
-            path = folder / f"{int(ns)}{ext}"
-            if path.is_file():
-                d = read_depth(path)
-                ok = np.isfinite(d) & (d > 0)
-                out[i] = float(np.median(d[ok])) if ok.any() else np.nan
-                break
+    for i in range(len(ds)):
+        d = depth_of(i)
+        if d is not None:
+            ok = np.isfinite(d) & (d > 0)
+            out[i] = float(np.median(d[ok])) if ok.any() else np.nan
     return out
 
 
