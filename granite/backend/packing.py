@@ -71,6 +71,21 @@ def pack_structure(ids_arr: np.ndarray, host_frames: np.ndarray, slots: Observat
 
 
 @numba.njit(cache=True, nogil=True)
+def _id_lookup(key, dense, lo, table, sorted_keys, sorted_values):
+    """The value of integer ``key`` (-1: not listed): from ``table`` over the key range
+    starting at ``lo`` when ``dense``, else by a sorted search in ``sorted_keys``."""
+    if dense:
+        x = key - lo
+        if x < 0 or x >= table.shape[0]:
+            return -1
+        return table[x]
+    p = np.searchsorted(sorted_keys, key)
+    if p >= sorted_keys.shape[0] or sorted_keys[p] != key:
+        return -1
+    return sorted_values[p]
+
+
+@numba.njit(cache=True, nogil=True)
 def _pack_observations(alive, o_lm, o_frame, o_uv, o_level, ids, f_ids, f_pos, use_filter, flt):
     """The live slots observing a listed landmark (``ids``; the first place of an id listed
     twice) in a listed frame (``f_ids``, pose ``f_pos``; and in ``flt`` with ``use_filter``),
@@ -104,40 +119,22 @@ def _pack_observations(alive, o_lm, o_frame, o_uv, o_level, ids, f_ids, f_pos, u
         lo = ids.min()
         span = ids.max() - lo + 1
         dense = span <= 4 * (m + n) + 4096
-        if dense:
-            table = np.full(span, -1, dtype=np.int64)
+        table = np.full(span if dense else 0, -1, dtype=np.int64)
+        if dense:  # backwards: an id listed twice keeps its first place
             for i in range(m - 1, -1, -1):
                 table[ids[i] - lo] = i
-        else:
-            sorter = np.argsort(ids, kind="mergesort")
-            sorted_ids = ids[sorter]
+        # stable: an id listed twice is found at its first place (unused when dense)
+        sorter = np.argsort(ids if not dense else ids[:0], kind="mergesort")
+        sorted_ids = ids[sorter]
         for k in range(n):
             if not alive[k]:
                 continue
-            if f_dense:
-                f = o_frame[k] - f_lo
-                if f < 0 or f >= f_span:
-                    continue
-                t = f_table[f]
-            else:
-                p = np.searchsorted(f_sorted, o_frame[k])
-                if p >= nf or f_sorted[p] != o_frame[k]:
-                    continue
-                t = f_at[p]
+            t = _id_lookup(o_frame[k], f_dense, f_lo, f_table, f_sorted, f_at)
             if t < 0:
                 continue
-            if dense:
-                x = o_lm[k] - lo
-                if x < 0 or x >= span:
-                    continue
-                i = table[x]
-                if i < 0:
-                    continue
-            else:
-                p = np.searchsorted(sorted_ids, o_lm[k])
-                if p >= m or sorted_ids[p] != o_lm[k]:
-                    continue
-                i = sorter[p]
+            i = _id_lookup(o_lm[k], dense, lo, table, sorted_ids, sorter)
+            if i < 0:
+                continue
             row[k] = i
             tgt[k] = t
             counts[i + 1] += 1
