@@ -1,6 +1,7 @@
 """Where a frame's CPU time goes: the sequential VO per stage (issue 15).
 
     python benchmarks/profile_vo.py DATASET [--frames N] [--repeats 3] [--cprofile OUT.prof]
+                                         [--config FILE]
 
 Loads the frames into memory and runs the VO as ``benchmarks/bench_speed.py`` does in its
 sequential mode (``VoPipeline(vo, concurrent=False)``, landmarks exported as ``granite run``
@@ -99,9 +100,10 @@ def main() -> int:
     parser.add_argument("--frames", type=int, help="first N frames only")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--cprofile", help="write a cProfile of the first timed run here")
+    parser.add_argument("--config", help="VO configuration TOML (default: the built-in defaults)")
     args = parser.parse_args()
 
-    from granite.errors import InputError
+    from granite.errors import GraniteError
     from granite.estimator.config import VoConfig
     from granite.estimator.pipeline import VoPipeline
     from granite.estimator.vo import MonocularVO
@@ -109,7 +111,8 @@ def main() -> int:
 
     try:
         dataset = open_dataset(args.dataset)
-    except InputError as exc:
+        config = VoConfig.load(args.config) if args.config else VoConfig()
+    except GraniteError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     n = len(dataset) if args.frames is None else min(args.frames, len(dataset))
@@ -117,7 +120,7 @@ def main() -> int:
     install_stage_timers()
 
     def run() -> np.ndarray:
-        vo = MonocularVO(dataset.calibration.camera(), VoConfig())
+        vo = MonocularVO(dataset.calibration.camera(), config)
         vo.export_landmarks = True  # as run_vo
         return np.array([out.T_w_c for _, out in VoPipeline(vo, False).run(frames)])
 

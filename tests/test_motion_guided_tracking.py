@@ -136,3 +136,67 @@ def test_malformed_prediction_is_a_clear_error(texture):
         flow.process(0.1, texture, predicted=(r0.ids, np.zeros((len(r0.ids), 3))))
     with pytest.raises(ValueError, match="pair"):
         flow.process(0.2, texture, predicted=np.zeros(3))
+
+
+
+def _fine_pass_only(img0, img1, displacement_guess):
+    """The guided pass that starts ``guided_levels_above`` levels above the creation level,
+    alone (kernel call, fixed forward-backward limit): the corners of img0 tracked into img1
+    from ``displacement_guess(positions)``. Returns (positions, new positions, status)."""
+    from granite.optical_flow.pyramid import build_pyramid
+    from granite.optical_flow.tracking import PASS_GUESS_FINE, new_template_cache, track_points
+
+    cfg = OpticalFlowConfig(fb_noise_factor=0.0)
+    flow = FrameToFrameOpticalFlow(cfg)
+    r0 = flow.process(0.0, img0)
+    pyr_a = flow._pyramid
+    pyr_b = build_pyramid(img1, cfg.levels, presmooth_sigma=cfg.presmooth_sigma)
+    n, p = len(r0.ids), len(flow._pattern)
+    out, _, status = track_points(
+        pyr_a.data, pyr_a.offsets, pyr_a.widths, pyr_a.heights,
+        pyr_b.data, pyr_b.offsets, pyr_b.widths, pyr_b.heights,
+        r0.positions, r0.levels, np.full(n, -1), *new_template_cache(0, cfg.levels, p),
+        *new_template_cache(n, cfg.levels, p), flow._pattern, cfg.margin, cfg.iterations,
+        cfg.fb_threshold_sq, 0.0, guess=displacement_guess(r0.positions),
+        order=np.array([PASS_GUESS_FINE]), min_zncc_guess=cfg.guess_min_zncc,
+        guided_levels_above=cfg.guided_levels_above,
+    )
+    return r0.positions, out, status
+
+
+def test_the_fine_guided_pass_needs_the_prediction_within_its_reach(texture):
+    """Starting one level above the creation level is enough for a prediction within a few
+    pixels and not for one 14 px off: that is what the whole-pyramid guided pass after it is
+    for."""
+    affine = similarity(30.0, -20.0, np.radians(2), 1.0, CENTRE)
+    img1 = warp(texture, affine)
+    rng = np.random.default_rng(5)
+    close = lambda p: apply_affine(affine, p) - p + rng.normal(0, 1.0, p.shape)  # noqa: E731
+    far = lambda p: apply_affine(affine, p) - p + np.array([14.0, -10.0])  # noqa: E731
+    p0, p1, ok = _fine_pass_only(texture, img1, close)
+    inside = _in_view(apply_affine(affine, p0))
+    err = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1)
+    assert ok[inside].mean() > 0.9 and np.median(err[ok]) < 0.1 and np.mean(err[ok] < 1.0) > 0.98
+    _, _, ok_far = _fine_pass_only(texture, img1, far)
+    assert ok_far[inside].mean() < 0.2
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (14.0, -10.0)])
+def test_the_frontend_tracks_from_a_prediction_near_or_far_as_the_whole_pyramid_does(texture, offset):
+    """The default frontend (fine guided pass first, then the whole-pyramid guided pass, then
+    the unguided ones) keeps as many correct tracks as guided tracking over the whole pyramid
+    only (``guided_levels_above = -1``), whether the prediction is right or 17 px off. Four
+    levels and no median retry: the unguided passes cannot follow the 55 px shift, so the
+    tracks far from their prediction live only if the whole-pyramid guided pass follows."""
+    affine = similarity(45.5, -30.2, np.radians(2), 1.0, CENTRE)
+    img1 = warp(texture, affine)
+    guess = lambda p: apply_affine(affine, p) + np.array(offset)  # noqa: E731
+    kept = []
+    for above in (1, -1):
+        cfg = OpticalFlowConfig(levels=4, retry_min_flow=0.0, guided_levels_above=above)
+        p0, p1, r0 = _guided_pair(texture, img1, cfg, guess)
+        err = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1)
+        assert np.median(err) < 0.1 and np.mean(err < 1.0) > 0.98
+        kept.append(len(p0))
+    n_visible = _in_view(apply_affine(affine, r0.positions)).sum()
+    assert 0.85 * n_visible < kept[1] and kept[0] >= 0.97 * kept[1]

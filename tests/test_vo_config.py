@@ -42,7 +42,7 @@ def test_reference_file_is_the_defaults_with_our_additions_off():
                if value != getattr(getattr(default, name), key)}
     assert changed == {("optical_flow", "retry_min_flow"), ("optical_flow", "guess_min_zncc"),
                        ("optical_flow", "presmooth_sigma"), ("optical_flow", "pattern"),
-                       ("optical_flow", "fb_noise_factor"),
+                       ("optical_flow", "fb_noise_factor"), ("optical_flow", "guided_levels_above"),
                        ("estimator", "constant_velocity"), ("estimator", "motion_guided_tracking"),
                        ("estimator", "reinit_keeps_scale"), ("estimator", "init_max_candidates"),
                        ("estimator", "init_keep_reference"), ("estimator", "entropy_iteration"),

@@ -267,9 +267,11 @@ class FrameToFrameOpticalFlow:
                     points, levels, rows, *cache_a, *cache_b,
                     self._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow,
                     guess=guess, min_zncc_guess=cfg.guess_min_zncc,
-                    order=pass_order(guess is not None, cfg.local_retry_rounds),
+                    order=pass_order(guess is not None, cfg.local_retry_rounds,
+                                     cfg.guided_levels_above >= 0),
                     local_neighbours=cfg.local_retry_neighbours,
                     fb_var=fb_var, fb_max_sq=cfg.fb_max_sq, executor=executor,
+                    guided_levels_above=cfg.guided_levels_above,
                 )
             job.track = track
         job.inputs = (self._ids, self._points, self._levels, self._angles)

@@ -171,6 +171,7 @@ PASS_ZERO = 0  # zero motion (the reference)
 PASS_GUESS = 1  # the caller's per-point predicted displacement
 PASS_MEDIAN = 2  # the median displacement of the points tracked so far (retry_min_flow)
 PASS_LOCAL = 3  # the median displacement of each point's nearest tracked neighbours
+PASS_GUESS_FINE = 4  # the caller's guess, from ``guided_levels_above`` levels above the creation level
 
 #: A local-flow retry tracks from the guess on the creation level c and this many levels above
 #: it only (the guess is within a few pixels; coarser levels cost as much as fine ones and are
@@ -183,10 +184,12 @@ _ORDER_UNGUIDED = np.array([PASS_ZERO, PASS_MEDIAN], dtype=np.int64)
 _ORDER_GUIDED = np.array([PASS_GUESS, PASS_ZERO, PASS_MEDIAN], dtype=np.int64)
 
 
-def pass_order(guided: bool, local_rounds: int = 0) -> np.ndarray:
-    """The passes of :func:`track_points`: [guess,] zero, median, then ``local_rounds``
-    local-flow passes."""
+def pass_order(guided: bool, local_rounds: int = 0, fine_first: bool = False) -> np.ndarray:
+    """The passes of :func:`track_points`: [[guess from a fine level,] guess,] zero, median,
+    then ``local_rounds`` local-flow passes."""
     base = _ORDER_GUIDED if guided else _ORDER_UNGUIDED
+    if guided and fine_first:
+        base = np.concatenate([np.array([PASS_GUESS_FINE], dtype=np.int64), base])
     return np.concatenate([base, np.full(max(0, local_rounds), PASS_LOCAL, dtype=np.int64)])
 
 
@@ -196,7 +199,7 @@ def track_points(
     st_b, data_b, valid_b, jac_b, aux_b,
     pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
     guess=None, order=None, min_zncc_guess=0.9, local_neighbours=8,
-    fb_var=None, fb_max_sq=np.inf, executor=None,
+    fb_var=None, fb_max_sq=np.inf, executor=None, guided_levels_above=-1,
 ):
     """Track all points of image A into image B with a forward-backward check.
 
@@ -269,7 +272,8 @@ def track_points(
         st_b, data_b, valid_b, jac_b, aux_b,
         pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess,
     )
-    tail = (float(min_zncc_guess), int(local_neighbours), fb_var, float(fb_max_sq))
+    tail = (float(min_zncc_guess), int(local_neighbours), fb_var, float(fb_max_sq),
+            int(guided_levels_above))
     n = points.shape[0]
     if executor is None or n < _MIN_SPLIT:
         return _track_points(*args, order, *tail)[:3]
@@ -294,7 +298,7 @@ def independent_passes(order: np.ndarray) -> int:
     """Number of leading passes of ``order`` that treat each point on its own (guided and
     zero-motion passes): those may be split over disjoint point ranges."""
     m = 0
-    while m < len(order) and int(order[m]) in (PASS_ZERO, PASS_GUESS):
+    while m < len(order) and int(order[m]) in (PASS_ZERO, PASS_GUESS, PASS_GUESS_FINE):
         m += 1
     return m
 
@@ -305,7 +309,7 @@ def _track_points(
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
     st_b, data_b, valid_b, jac_b, aux_b,
     pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
-    local_neighbours, fb_var, fb_max_sq,
+    local_neighbours, fb_var, fb_max_sq, guided_levels_above,
 ):
     """Kernel of :func:`track_points` (``guess`` (N, 2) or (0, 2) for none). Also returns
     the ZNCC of each point's last guided forward match (-2: none)."""
@@ -316,7 +320,8 @@ def _track_points(
         points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
         st_b, data_b, valid_b, jac_b, aux_b,
         pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
-        local_neighbours, fb_var, fb_max_sq, 0, n, out, theta, status, tried, score, local,
+        local_neighbours, fb_var, fb_max_sq, guided_levels_above, 0, n, out, theta, status, tried,
+        score, local,
     )
     return out, theta, status, score
 
@@ -335,7 +340,8 @@ def _track_passes(
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
     st_b, data_b, valid_b, jac_b, aux_b,
     pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
-    local_neighbours, fb_var, fb_max_sq, k0, k1, out, theta, status, tried, score, local,
+    local_neighbours, fb_var, fb_max_sq, guided_levels_above, k0, k1, out, theta, status, tried,
+    score, local,
 ):
     """The passes ``order`` of :func:`_track_points` for the points ``k0 <= k < k1``, on the
     per-point state (``out``, ``theta``, ``status``, ``tried``, ``score``, ``local``, all N
@@ -353,7 +359,7 @@ def _track_passes(
     for mode in order:
         flow_x = 0.0
         flow_y = 0.0
-        if mode == PASS_GUESS and not has_guess:
+        if (mode == PASS_GUESS or mode == PASS_GUESS_FINE) and not has_guess:
             continue
         if mode == PASS_LOCAL:
             if not local_guesses(points, out, status, local_neighbours, local):
@@ -380,9 +386,9 @@ def _track_passes(
         for k in range(k0, k1):
             if status[k]:
                 continue
-            per_point = mode == PASS_GUESS or mode == PASS_LOCAL
+            per_point = mode == PASS_GUESS or mode == PASS_GUESS_FINE or mode == PASS_LOCAL
             if per_point:
-                if mode == PASS_GUESS:
+                if mode != PASS_LOCAL:
                     flow_x = guess[k, 0]
                     flow_y = guess[k, 1]
                 else:
@@ -394,7 +400,11 @@ def _track_passes(
             y0 = points[k, 1]
             lvl = levels[k]
             row = rows_a[k]
-            top = lvl + _LOCAL_LEVELS_ABOVE if mode == PASS_LOCAL else -1
+            top = -1
+            if mode == PASS_LOCAL:
+                top = lvl + _LOCAL_LEVELS_ABOVE
+            elif mode == PASS_GUESS_FINE:
+                top = lvl + guided_levels_above
             if row >= 0:
                 ok, x1, y1, t1 = track_point_at(
                     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
