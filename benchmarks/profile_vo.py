@@ -71,7 +71,7 @@ def install_stage_timers() -> None:
         (V, "estimate", "estimate (total)"), (V, "predict_tracks", "predict_tracks"),
         (V, "finish", "vo.finish"), (V, "window_landmarks", "export landmarks"),
         (vo, "scale_drift_indicator", "scale_drift"),
-        (vo, "predicted_track_positions", "predicted_track_positions"),
+        (vo, "prediction_basis", "prediction_basis"),
         (W, "optimize", "window.optimize"), (W, "marginalize", "marginalize"),
         (W, "remove_outliers", "remove_outliers"), (W, "add_observations", "add_observations"),
         (W, "landmark_points", "win.landmark_points"), (W, "problem", "win.problem"),

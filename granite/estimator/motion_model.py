@@ -6,11 +6,12 @@ positions (``constant_velocity = false``, ``motion_guided_tracking = false``).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from granite.backend import SlidingWindow
 from granite.geometry import se3_exp, se3_inverse, se3_log
-from granite.optical_flow import FrameToFrameOpticalFlow
 from granite.optical_flow.prediction import predict_positions
 
 
@@ -41,6 +42,14 @@ class ConstantVelocityModel:
             self._motion = (se3_inverse(self.last_pose) @ T_w_c, timestamp - self.last_time)
         self.last_pose, self.last_time = T_w_c, timestamp
 
+    def copy(self) -> ConstantVelocityModel:
+        """An independent copy (the state at this moment)."""
+        other = ConstantVelocityModel(self.constant_velocity, self.max_extrapolation)
+        other.last_pose, other.last_time = self.last_pose.copy(), self.last_time
+        if self._motion is not None:
+            other._motion = (self._motion[0].copy(), self._motion[1])
+        return other
+
     def forget_motion(self) -> None:
         """Drop the motion estimate (a map (re)initialisation re-sets the translation: the step
         from the frame before it is not a motion)."""
@@ -59,29 +68,39 @@ class ConstantVelocityModel:
         return self.last_pose @ se3_exp(ratio * se3_log(T_prev_last))
 
 
-def predicted_track_positions(model: ConstantVelocityModel, flow: FrameToFrameOpticalFlow,
-                              window: SlidingWindow, camera, timestamp: float,
-                              known: tuple[np.ndarray, np.ndarray] | None = None,
-                              ) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(track ids, pixels)`` where the frontend's current tracks should appear at
-    ``timestamp`` under the predicted pose: tracks of landmarks with d > 0 by their depth, the
-    others by the infinite homography. None when there is no motion estimate yet. ``known``:
-    ``(ids, inverse distances)`` already read from the window in its current state, used
-    when the ids are the frontend's current ones."""
-    if not model.has_motion:
+@dataclass(frozen=True)
+class PredictionBasis:
+    """What motion-guided predictions for a later frame are made from, fixed once a frame's
+    pose and landmarks are final (before its marginalisation): the tracks ``ids`` at pixels
+    ``uv`` of the frame at ``timestamp``, a copy of the motion model, the frame's pose
+    ``T_w_old`` and the depths (map units along that camera's z axis; NaN: not a finite
+    landmark) of the tracks' landmarks. Tracks of landmarks with d > 0 are predicted by their
+    depth, the others by the infinite homography."""
+
+    timestamp: float
+    model: ConstantVelocityModel
+    T_w_old: np.ndarray
+    ids: np.ndarray
+    uv: np.ndarray
+    depths: np.ndarray
+
+    def predict(self, camera, timestamp: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(track ids, pixels)`` where the tracks should appear at ``timestamp``."""
+        T_new_old = se3_inverse(self.model.predict(timestamp)) @ self.T_w_old
+        uv_new, valid = predict_positions(self.uv, camera, T_new_old, self.depths)
+        return self.ids[valid], uv_new[valid]
+
+
+def prediction_basis(model: ConstantVelocityModel, window: SlidingWindow, timestamp: float,
+                     ids: np.ndarray, uv: np.ndarray) -> PredictionBasis | None:
+    """The :class:`PredictionBasis` of the tracks ``ids`` at ``uv`` of the frame at
+    ``timestamp`` in the current state of the window and motion model; None when there is no
+    motion estimate or no track."""
+    if not model.has_motion or not len(ids):
         return None
-    ids, uv = flow.current_tracks()
-    if not len(ids):
-        return None
-    T_w_old = model.last_pose
-    T_old_w = se3_inverse(T_w_old)
-    T_new_old = se3_inverse(model.predict(timestamp)) @ T_w_old
-    if known is not None and np.array_equal(known[0], ids):
-        inv = known[1]
-    else:
-        inv = window.landmarks.inverse_distances(ids)
+    T_w_old = model.predict(timestamp)
+    inv = window.landmarks.inverse_distances(ids)
     depths = np.full(len(ids), np.nan)
     finite = np.flatnonzero(inv > 0.0)
-    depths[finite] = window.landmark_points(ids[finite], T_old_w)[:, 2]
-    uv_new, valid = predict_positions(uv, camera, T_new_old, depths)
-    return ids[valid], uv_new[valid]
+    depths[finite] = window.landmark_points(ids[finite], se3_inverse(T_w_old))[:, 2]
+    return PredictionBasis(timestamp, model.copy(), T_w_old, ids.copy(), uv.copy(), depths)

@@ -18,12 +18,13 @@ The concurrent pipeline (``concurrent=True``) has three helper threads besides t
 * the **helper**, which runs the first half of the points' guided / zero-motion passes (the
   kernel is per point independent there; the median and local passes follow over all points).
 
-The tracking of frame k+1 starts as soon as its inputs exist: with motion-guided tracking right
-after the estimator's state of frame k is final (:meth:`MonocularVO.estimate`: optimisation,
-keyframe, marginalisation, motion model), so it overlaps the rest of frame k
-(:meth:`MonocularVO.finish`: outputs, the exported landmarks) and whatever the caller does with
-the output (records, rerun logging); without the feedback right after frame k's tracks are
-known, so it overlaps the whole estimator of frame k, as in the reference. Every piece of
+The tracking of frame k+1 starts as soon as its inputs exist: with motion-guided tracking as
+soon as frame k's pose and landmarks are final (:meth:`MonocularVO.estimate` calls back after
+the optimisation, keyframe decision, outlier removal and motion model), so it overlaps the rest
+of frame k (Λ_scaledrift, marginalisation, :meth:`MonocularVO.finish`: outputs, the exported
+landmarks) and whatever the caller does with the output (records, rerun logging); without the
+feedback right after frame k's tracks are known, so it overlaps the whole estimator of frame k,
+as in the reference. Every piece of
 state is written by one thread at a time in the sequential order of the operations, and every
 computation gets the same inputs as in the sequential mode, so trajectories, diagnostics and
 tracks are bit-identical (``tests/test_pipeline.py``); ``concurrent=False`` (``granite run
@@ -160,11 +161,13 @@ class VoPipeline:
                 tracks = flow.complete(job)
                 nxt = take()
                 launch_next = nxt is not _END and nxt[0].image is not None
-                if launch_next and not guided:  # the next frame needs nothing of the estimator
+                launched = []
+                if launch_next and not guided:  # the next frame needs nothing of this estimate
                     pending = launch(nxt)
-                estimated = vo.estimate(frame.index, frame.timestamp, frame.image, tracks, start)
-                if launch_next and guided:
-                    pending = launch(nxt)
+                ready = (lambda: launched.append(launch(nxt))) if launch_next and guided else None
+                estimated = vo.estimate(frame.index, frame.timestamp, frame.image, tracks, start, ready)
+                if ready is not None:  # launched once the predictions were fixed (or now)
+                    pending = launched[0] if launched else launch(nxt)
                 out = vo.finish(estimated)
                 self.caller_cpu += time.thread_time() - cpu
                 yield frame, out

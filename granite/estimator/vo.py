@@ -35,7 +35,7 @@ from granite.estimator.diagnostics import FrameDiagnostics
 from granite.estimator.keyframes import EntropyKeyframeSelector, depth_ratio_exceeds, median_depth
 from granite.estimator.landmark_creation import LandmarkTriangulator
 from granite.estimator.map_initialization import build_initial_map, find_map_initialization, init_candidates
-from granite.estimator.motion_model import ConstantVelocityModel, predicted_track_positions
+from granite.estimator.motion_model import ConstantVelocityModel, PredictionBasis, prediction_basis
 from granite.estimator.recovery import LandmarkRefinder
 from granite.estimator.tracking_state import FrameStatus, MapState, next_state
 from granite.estimator.tracks import FrameTracks
@@ -92,9 +92,9 @@ class MonocularVO:
         self._previous_frame: int | None = None
         #: timestamps of the window's frames (the keyframe-age rule of the window policy)
         self._timestamps: dict[int, float] = {}
-        #: (track ids, their inverse distances) of the last estimated frame, in the window's
-        #: state at the end of :meth:`estimate` (valid until the next one)
-        self._track_inverse_distances: tuple[np.ndarray, np.ndarray] | None = None
+        #: what the next frame's predictions are made from (motion-guided tracking), fixed
+        #: by :meth:`estimate` once the last frame's pose and landmarks are final
+        self._prediction_basis: PredictionBasis | None = None
         self.keyframe_log: list[tuple[int, int]] = []  # (frame id, sub-map) of every keyframe
         self.export_landmarks = False  # fill FrameOutput.landmarks_w (costs ~1 ms per frame)
 
@@ -240,11 +240,10 @@ class MonocularVO:
     # ----------------------------------------------------------------------------- main
     def predict_tracks(self, timestamp: float) -> tuple[np.ndarray, np.ndarray] | None:
         """The frontend's guesses for a frame at ``timestamp`` (motion-guided tracking): the
-        only data that flows from the estimator back into the frontend."""
-        if not self.config.estimator.motion_guided_tracking:
-            return None
-        return predicted_track_positions(self.motion, self.flow, self.window, self.camera, timestamp,
-                                         self._track_inverse_distances)
+        only data that flows from the estimator back into the frontend. Made from the last
+        estimated frame's tracks, final pose and landmarks (:class:`PredictionBasis`)."""
+        basis = self._prediction_basis
+        return None if basis is None else basis.predict(self.camera, timestamp)
 
     def process(self, frame_id: int, timestamp: float, image: np.ndarray | None) -> FrameOutput:
         """Process one frame; ``image`` None marks a missing or corrupt image (skipped)."""
@@ -255,11 +254,13 @@ class MonocularVO:
         return self.finish(self.estimate(frame_id, timestamp, image, tracks, start))
 
     def estimate(self, frame_id: int, timestamp: float, image: np.ndarray,
-                 tracks: OpticalFlowResult, start: float):
-        """The estimator's part of :meth:`process` given the frame's tracks, up to the state
-        the next frame's :meth:`predict_tracks` reads (optimisation, keyframes, restart,
-        marginalisation, motion model). Returns what :meth:`finish` needs, or the finished
-        :class:`FrameOutput` of a skipped frame."""
+                 tracks: OpticalFlowResult, start: float, prediction_ready=None):
+        """The estimator's part of :meth:`process` given the frame's tracks: optimisation,
+        keyframes, restart, motion model, then the next frame's predictions are fixed
+        (:meth:`predict_tracks`; ``prediction_ready()`` is called then, e.g. to start the
+        next frame's tracking), then Λ_scaledrift and marginalisation, which do not change
+        them. Returns what :meth:`finish` needs, or the finished :class:`FrameOutput` of a
+        skipped frame."""
         est = self.config.estimator
         if tracks.rejected is not None:  # blank / wrong size: the frontend kept its last frame
             return self._skipped(timestamp, frame_id, tracks, start)
@@ -304,6 +305,18 @@ class MonocularVO:
             self._restart()
             T_w_c, submap = self._start_submap(frame_id, timestamp, tracks, image), self.submap
         else:
+            if initialized:  # the pose jumped to the new map's: no motion to measure
+                self.motion.forget_motion()
+            self.motion.update(T_w_c, timestamp, measure_motion=self._previous_frame is not None
+                               and self.state is MapState.MAPPED and not initialized)
+            self._previous_frame = frame_id
+        # the pose and the landmarks are final: the next frame's predictions are fixed here, so
+        # its tracking may start (``prediction_ready``) while the rest runs
+        self._prediction_basis = (prediction_basis(self.motion, win, timestamp, tracks.ids, tracks.positions)
+                                  if est.motion_guided_tracking else None)
+        if prediction_ready is not None:
+            prediction_ready()
+        if not lost:
             drift = scale_drift_indicator(win)  # final estimate, before marginalisation (Sec. V)
             keep = {self._init_reference} if (est.init_keep_reference and self.state is not MapState.MAPPED
                                               and self._init_reference in win) else set()
@@ -314,15 +327,8 @@ class MonocularVO:
                     self._tracks.pop(f, None)
                     self._timestamps.pop(f, None)
                 self.refinder.prune()
-            if initialized:  # the pose jumped to the new map's: no motion to measure
-                self.motion.forget_motion()
-            self.motion.update(T_w_c, timestamp, measure_motion=self._previous_frame is not None
-                               and self.state is MapState.MAPPED and not initialized)
-            self._previous_frame = frame_id
-        # inverse distances of the frame's tracks in the final state: the frame's output, and
-        # the depths of the next frame's prediction (the same ids and state)
+        # inverse distances of the frame's tracks in the final state: the frame's output
         inv = win.landmarks.inverse_distances(tracks.ids)
-        self._track_inverse_distances = (tracks.ids, inv)
         return (start, timestamp, frame_id, tracks, status, submap, finite, infinite, keyframe_taken,
                 negative_entropy, drift, T_w_c, inv)
 
