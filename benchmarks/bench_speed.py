@@ -1,6 +1,7 @@
 """Speed and memory of the VO: sequential against concurrent (issue 15).
 
     python benchmarks/bench_speed.py [DATASET ...] [--repeats 2] [--frames N] [--json FILE]
+                                     [--config FILE]
 
 Default datasets: the 640x480 bench renders of this checkout
 (``runs/bench/sequences/*_640x480_*``, made by ``python benchmarks/bench_vo.py``, and the older
@@ -46,7 +47,8 @@ def default_datasets() -> list[Path]:
     return found
 
 
-def worker(dataset_path: str, mode: str, repeats: int, frames: int | None) -> dict:
+def worker(dataset_path: str, mode: str, repeats: int, frames: int | None,
+           config_path: str | None = None) -> dict:
     """One dataset in one mode, in this (fresh) process."""
     import numpy as np
 
@@ -58,12 +60,13 @@ def worker(dataset_path: str, mode: str, repeats: int, frames: int | None) -> di
     from granite.io import open_dataset
 
     concurrent = mode == "conc"
+    config = VoConfig.load(config_path) if config_path else VoConfig()
     rss_start = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     dataset = open_dataset(dataset_path)
     n = len(dataset) if frames is None else min(frames, len(dataset))
     records = []
     t0, c0 = time.perf_counter(), time.process_time()
-    run_vo(dataset, VoConfig(), progress=False, max_frames=n, concurrent=concurrent,
+    run_vo(dataset, config, progress=False, max_frames=n, concurrent=concurrent,
            on_frame=lambda f, out: records.append(FrameRecord.from_output(f.index, f.timestamp, out)))
     run_wall, run_cpu = time.perf_counter() - t0, time.process_time() - c0
     rss_run = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -72,7 +75,7 @@ def worker(dataset_path: str, mode: str, repeats: int, frames: int | None) -> di
     loaded = list(dataset.frames(0, n))
     best = None
     for _ in range(repeats):
-        vo = MonocularVO(dataset.calibration.camera(), VoConfig())
+        vo = MonocularVO(dataset.calibration.camera(), config)
         vo.export_landmarks = True  # as run_vo
         pipe = VoPipeline(vo, concurrent)
         t0, c0, m0 = time.perf_counter(), time.process_time(), time.thread_time()
@@ -96,12 +99,21 @@ def main() -> int:
     parser.add_argument("--frames", type=int, help="first N frames only")
     parser.add_argument("--modes", nargs="+", default=["seq", "conc"], choices=["seq", "conc"])
     parser.add_argument("--json", type=Path, default=ROOT / "runs" / "bench" / "bench_speed.json")
+    parser.add_argument("--config", help="VO configuration TOML (default: the built-in defaults)")
     parser.add_argument("--worker", nargs=2, metavar=("DATASET", "MODE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
-        print(json.dumps(worker(args.worker[0], args.worker[1], args.repeats, args.frames)))
+        print(json.dumps(worker(args.worker[0], args.worker[1], args.repeats, args.frames, args.config)))
         return 0
 
+    if args.config:
+        from granite.errors import GraniteError
+        from granite.estimator.config import VoConfig
+        try:
+            VoConfig.load(args.config)
+        except GraniteError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     datasets = args.datasets or default_datasets()
     print(f"{os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.1f}")
     header = (f"{'dataset':34s} {'mode':4s} {'frames':>6s} {'fps':>6s} {'wall ms':>8s} {'CPU ms':>7s} "
@@ -113,6 +125,8 @@ def main() -> int:
             cmd = [sys.executable, __file__, "--worker", str(ds), mode, "--repeats", str(args.repeats)]
             if args.frames:
                 cmd += ["--frames", str(args.frames)]
+            if args.config:
+                cmd += ["--config", str(Path(args.config).resolve())]
             proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
             if proc.returncode != 0:
                 print(f"{ds.name}: {mode} failed:\n{proc.stderr[-2000:]}")

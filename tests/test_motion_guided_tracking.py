@@ -200,3 +200,49 @@ def test_the_frontend_tracks_from_a_prediction_near_or_far_as_the_whole_pyramid_
         kept.append(len(p0))
     n_visible = _in_view(apply_affine(affine, r0.positions)).sum()
     assert 0.85 * n_visible < kept[1] and kept[0] >= 0.97 * kept[1]
+
+
+def test_bearing_rotation_recovers_the_rotation_between_predicted_and_tracked_pixels():
+    """The rotation that corrects a predicted camera orientation (``predict_before_estimate``):
+    pixels of random points seen by a camera and by the same camera rotated by R_err; with a
+    fifth of the pairs replaced by wrong matches it is still found."""
+    from granite.estimator.motion_model import bearing_rotation
+    from granite.geometry import so3_log
+
+    rng = np.random.default_rng(7)
+    cam = _pinhole()
+    uv_pred = np.column_stack([rng.uniform(20, W - 20, 200), rng.uniform(20, H - 20, 200)])
+    b_pred, _ = cam.unproject(uv_pred)
+    R_err = so3_exp(np.array([0.01, -0.03, 0.02]))
+    uv_tracked, valid = cam.project(b_pred @ R_err.T)
+    assert valid.all()
+    R = bearing_rotation(cam, uv_pred, uv_tracked)
+    assert np.linalg.norm(so3_log(R @ R_err.T)) < 1e-9
+    wrong = rng.choice(200, 40, replace=False)
+    uv_tracked[wrong] += rng.uniform(-40, 40, (40, 2))
+    R = bearing_rotation(cam, uv_pred, uv_tracked)
+    assert np.degrees(np.linalg.norm(so3_log(R @ R_err.T))) < 0.05
+    assert bearing_rotation(cam, uv_pred[:5], uv_tracked[:5]) is None  # too few pairs
+
+
+def test_prediction_basis_puts_tracks_where_the_predicted_camera_sees_them():
+    """A track of a landmark at depth z, basis at pose T_w_old: at a later time the prediction
+    is the projection of the landmark into the constant-velocity pose (by hand), and a track
+    without a landmark follows the infinite homography."""
+    from granite.estimator.motion_model import ConstantVelocityModel, PredictionBasis
+
+    model = ConstantVelocityModel(True, 5.0)
+    T_step = np.eye(4)
+    T_step[:3, :3], T_step[:3, 3] = so3_exp(np.array([0.0, 0.02, 0.0])), [0.2, 0.0, 0.1]
+    model.update(np.eye(4), 0.0, measure_motion=False)
+    model.update(T_step, 0.1, measure_motion=True)
+    X_old = np.array([[1.0, -0.5, 8.0], [0.0, 0.0, 1.0]])  # in the camera at t = 0.1
+    uv = _by_hand(X_old)
+    basis = PredictionBasis(0.1, model.copy(), T_step.copy(), np.array([4, 9]), uv,
+                            np.array([8.0, np.nan]))
+    ids, uv_new = basis.predict(_pinhole(), 0.2)  # one more step of T_step
+    assert list(ids) == [4, 9]
+    X_new = X_old[:1] @ T_step[:3, :3] + (-T_step[:3, :3].T @ T_step[:3, 3])  # T_step^-1 X
+    np.testing.assert_allclose(uv_new[0], _by_hand(X_new)[0], atol=1e-9)
+    ray = X_old[1] @ T_step[:3, :3]  # rotation only
+    np.testing.assert_allclose(uv_new[1], _by_hand(ray[None])[0], atol=1e-9)

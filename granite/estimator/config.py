@@ -114,6 +114,13 @@ class EstimatorConfig:
         motion_guided_tracking: not in the reference: the frontend first tracks each point
             from where the constant-velocity pose predicts it (landmarks with d > 0 by their
             depth, the others by the infinite homography), then as the reference does.
+        predict_before_estimate: not in the reference (which has no prediction). With
+            ``motion_guided_tracking``, frame k+1's predictions are made before frame k is
+            estimated, so the concurrent pipeline tracks frame k+1 during the whole estimator
+            step of frame k: from frame k's tracks, the window after frame k-1 and the motion
+            model, whose pose for frame k is corrected by the rotation that maps frame k's
+            predicted track bearings onto the tracked ones (Kabsch). False: from frame k's
+            optimised pose (frame k+1's tracking waits for frame k's optimisation).
     """
 
     keyframe_entropy_fraction: float = spec_field(0.995, 0.0, 1.0, lo_open=True)
@@ -131,6 +138,7 @@ class EstimatorConfig:
     constant_velocity: bool = spec_field(True, origin="ours", reference=False)
     max_velocity_extrapolation: float = spec_field(5.0, 0.0, 1000.0, lo_open=True, origin="ours")
     motion_guided_tracking: bool = spec_field(True, origin="ours", reference=False)
+    predict_before_estimate: bool = spec_field(True, origin="ours", reference=False)
     reinit_keeps_scale: bool = spec_field(True, origin="ours", reference=False)
     scene_distance_min_points: int = spec_field(20, 1, 100000, origin="ours")
     init_max_candidates: int = spec_field(3, 0, 1000, origin="ours", reference=0)

@@ -104,3 +104,29 @@ def prediction_basis(model: ConstantVelocityModel, window: SlidingWindow, timest
     finite = np.flatnonzero(inv > 0.0)
     depths[finite] = window.landmark_points(ids[finite], se3_inverse(T_w_old))[:, 2]
     return PredictionBasis(timestamp, model.copy(), T_w_old, ids.copy(), uv.copy(), depths)
+
+
+def bearing_rotation(camera, predicted_uv: np.ndarray, tracked_uv: np.ndarray,
+                     min_pairs: int = 10) -> np.ndarray | None:
+    """The rotation ``R`` (3x3) with ``b_tracked ~ R b_predicted`` for the unit bearings of
+    predicted and tracked pixels of the same tracks (Kabsch, least squares on the bearings; a
+    second pass without the pairs more than 3 median angles off). A camera whose predicted
+    pose ``T_w_c`` was off by a rotation only is at ``R_w_c R^T``. None with fewer than
+    ``min_pairs`` pairs."""
+    b_p, ok_p = camera.unproject(predicted_uv)
+    b_t, ok_t = camera.unproject(tracked_uv)
+    ok = ok_p & ok_t
+    if ok.sum() < min_pairs:
+        return None
+    b_p, b_t = b_p[ok], b_t[ok]
+    R = None
+    for _ in range(2):
+        U, _, Vt = np.linalg.svd(b_t.T @ b_p)
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+        R = U @ D @ Vt
+        angle = np.linalg.norm(np.cross(b_p @ R.T, b_t), axis=1)
+        keep = angle <= 3.0 * np.median(angle)
+        if keep.sum() < min_pairs or keep.all():
+            break
+        b_p, b_t = b_p[keep], b_t[keep]
+    return R

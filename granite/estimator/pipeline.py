@@ -3,8 +3,8 @@ the frontend concurrent to the estimator (two cores), with bit-identical results
 
 What flows between frontend and estimator: the frontend's tracks of frame k go to the estimator;
 the only feedback is motion-guided tracking (``[estimator] motion_guided_tracking``, ours, on by
-default): frame k+1 is tracked from positions predicted with the estimator's state after frame
-k (the constant-velocity pose and the window's landmark depths). The reference (feedback off)
+default): frame k+1 is tracked from positions predicted from frame k's tracks, a pose for frame
+k, the constant-velocity motion and the window's landmark depths. The reference (feedback off)
 runs its optical flow in a thread of its own that feeds the estimator through a queue.
 
 The concurrent pipeline (``concurrent=True``) has three helper threads besides the caller's:
@@ -14,17 +14,19 @@ The concurrent pipeline (``concurrent=True``) has three helper threads besides t
   <granite.optical_flow.FrameToFrameOpticalFlow.prepare>`, OpenCV and GIL-free numba kernels)
   while the estimator works on frame k;
 * the **tracker** tracks the points into frame k+1 and detects new corners
-  (:class:`~granite.optical_flow.frame_to_frame.FlowJob`), splitting the points with
+  (:class:`~granite.optical_flow.frame_to_frame.FlowJob`), splitting the points, while the
+  caller waits for them, with
 * the **helper**, which runs the first half of the points' guided / zero-motion passes (the
   kernel is per point independent there; the median and local passes follow over all points).
 
-The tracking of frame k+1 starts as soon as its inputs exist: with motion-guided tracking as
-soon as frame k's pose and landmarks are final (:meth:`MonocularVO.estimate` calls back after
-the optimisation, keyframe decision, outlier removal and motion model), so it overlaps the rest
-of frame k (Λ_scaledrift, marginalisation, :meth:`MonocularVO.finish`: outputs, the exported
-landmarks) and whatever the caller does with the output (records, rerun logging); without the
-feedback right after frame k's tracks are known, so it overlaps the whole estimator of frame k,
-as in the reference. Every piece of
+The tracking of frame k+1 starts as soon as its inputs exist: without motion-guided tracking,
+and with it when the predictions are made before the estimator step (``[estimator]
+predict_before_estimate``, the default), right after frame k's tracks are known
+(:meth:`MonocularVO.note_tracks`), so it overlaps the whole estimator of frame k as in the
+reference (on one tracker thread: the caller's thread is busy); with ``predict_before_estimate
+= false`` once frame k's pose and landmarks are optimised (:meth:`MonocularVO.estimate` calls
+back before Λ_scaledrift and marginalisation), so it overlaps the rest of frame k and
+:meth:`MonocularVO.finish`, splitting its points with the helper thread. Every piece of
 state is written by one thread at a time in the sequential order of the operations, and every
 computation gets the same inputs as in the sequential mode, so trajectories, diagnostics and
 tracks are bit-identical (``tests/test_pipeline.py``); ``concurrent=False`` (``granite run
@@ -104,13 +106,16 @@ class VoPipeline:
 
     def _run_concurrent(self, frames: Iterable) -> Iterator[tuple[object, FrameOutput]]:
         vo, flow = self.vo, self.vo.flow
-        guided = vo.config.estimator.motion_guided_tracking
+        waits = vo.next_tracking_waits_for_estimate
         items: queue.Queue = queue.Queue(maxsize=self.prefetch)
         stop = threading.Event()
         reader = threading.Thread(target=self._reader, args=(frames, items, stop),
                                   name="granite-reader", daemon=True)
         tracker = ThreadPoolExecutor(1, thread_name_prefix="granite-tracker")
         helper = ThreadPoolExecutor(1, thread_name_prefix="granite-helper")
+        # the points of a frame begun early are split over two threads only while the caller
+        # waits for them; when the whole estimator step runs meanwhile, one tracker thread
+        split_early = helper if waits else None
 
         def take():
             t = time.perf_counter()
@@ -126,7 +131,7 @@ class VoPipeline:
             frame, prep = item
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp), helper)
+                job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp), split_early)
             if job.rejected is None:
                 tracker.submit(job.run)
             return frame, job, caught
@@ -159,12 +164,13 @@ class VoPipeline:
                 job.wait()
                 self.waited_tracker += time.perf_counter() - t
                 tracks = flow.complete(job)
+                vo.note_tracks(frame.timestamp, tracks)
                 nxt = take()
                 launch_next = nxt is not _END and nxt[0].image is not None
                 launched = []
-                if launch_next and not guided:  # the next frame needs nothing of this estimate
+                if launch_next and not waits:  # the next frame needs nothing of this estimate
                     pending = launch(nxt)
-                ready = (lambda: launched.append(launch(nxt))) if launch_next and guided else None
+                ready = (lambda: launched.append(launch(nxt))) if launch_next and waits else None
                 estimated = vo.estimate(frame.index, frame.timestamp, frame.image, tracks, start, ready)
                 if ready is not None:  # launched once the predictions were fixed (or now)
                     pending = launched[0] if launched else launch(nxt)

@@ -35,7 +35,8 @@ from granite.estimator.diagnostics import FrameDiagnostics
 from granite.estimator.keyframes import EntropyKeyframeSelector, depth_ratio_exceeds, median_depth
 from granite.estimator.landmark_creation import LandmarkTriangulator
 from granite.estimator.map_initialization import build_initial_map, find_map_initialization, init_candidates
-from granite.estimator.motion_model import ConstantVelocityModel, PredictionBasis, prediction_basis
+from granite.estimator.motion_model import (ConstantVelocityModel, PredictionBasis, bearing_rotation,
+                                            prediction_basis)
 from granite.estimator.recovery import LandmarkRefinder
 from granite.estimator.tracking_state import FrameStatus, MapState, next_state
 from granite.estimator.tracks import FrameTracks
@@ -95,6 +96,8 @@ class MonocularVO:
         #: what the next frame's predictions are made from (motion-guided tracking), fixed
         #: by :meth:`estimate` once the last frame's pose and landmarks are final
         self._prediction_basis: PredictionBasis | None = None
+        #: the last predictions handed to the frontend (ids, pixels)
+        self._last_prediction: tuple[np.ndarray, np.ndarray] | None = None
         self.keyframe_log: list[tuple[int, int]] = []  # (frame id, sub-map) of every keyframe
         self.export_landmarks = False  # fill FrameOutput.landmarks_w (costs ~1 ms per frame)
 
@@ -243,7 +246,38 @@ class MonocularVO:
         only data that flows from the estimator back into the frontend. Made from the last
         estimated frame's tracks, final pose and landmarks (:class:`PredictionBasis`)."""
         basis = self._prediction_basis
-        return None if basis is None else basis.predict(self.camera, timestamp)
+        self._last_prediction = None if basis is None else basis.predict(self.camera, timestamp)
+        return self._last_prediction
+
+    @property
+    def next_tracking_waits_for_estimate(self) -> bool:
+        """Whether the next frame's predictions need this frame's optimisation (motion-guided
+        tracking without ``predict_before_estimate``)."""
+        est = self.config.estimator
+        return est.motion_guided_tracking and not est.predict_before_estimate
+
+    def note_tracks(self, timestamp: float, tracks: OpticalFlowResult) -> None:
+        """A frame's tracks are known and it is not estimated yet; with
+        ``predict_before_estimate`` the next frame's prediction basis is fixed here. Call it
+        between the tracking and :meth:`estimate` of every frame."""
+        est = self.config.estimator
+        if not (est.motion_guided_tracking and est.predict_before_estimate) or tracks.rejected is not None:
+            return
+        model = self.motion
+        if not model.has_motion:
+            self._prediction_basis = None
+            return
+        T_w_c = model.predict(timestamp).copy()
+        last = self._last_prediction
+        if last is not None:
+            _, i_p, i_t = np.intersect1d(last[0], tracks.ids, assume_unique=True, return_indices=True)
+            R = bearing_rotation(self.camera, last[1][i_p], tracks.positions[i_t])
+            if R is not None:
+                T_w_c[:3, :3] = T_w_c[:3, :3] @ R.T
+        model = model.copy()
+        model.update(T_w_c, timestamp, measure_motion=True)
+        self._prediction_basis = prediction_basis(model, self.window, timestamp, tracks.ids,
+                                                  tracks.positions)
 
     def process(self, frame_id: int, timestamp: float, image: np.ndarray | None) -> FrameOutput:
         """Process one frame; ``image`` None marks a missing or corrupt image (skipped)."""
@@ -251,6 +285,7 @@ class MonocularVO:
         if image is None:
             return self._skipped(timestamp, frame_id, None, None)
         tracks = self.flow.process(timestamp, image, predicted=self.predict_tracks(timestamp))
+        self.note_tracks(timestamp, tracks)
         return self.finish(self.estimate(frame_id, timestamp, image, tracks, start))
 
     def estimate(self, frame_id: int, timestamp: float, image: np.ndarray,
@@ -268,6 +303,7 @@ class MonocularVO:
         win = self.window
         starts_submap = self.state is MapState.EMPTY
         guess = np.eye(4) if starts_submap else self.motion.predict(timestamp)
+
         win.add_frame(frame_id, guess, is_keyframe=starts_submap)
         self._timestamps[frame_id] = timestamp
         keyframe_taken = False
@@ -312,8 +348,9 @@ class MonocularVO:
             self._previous_frame = frame_id
         # the pose and the landmarks are final: the next frame's predictions are fixed here, so
         # its tracking may start (``prediction_ready``) while the rest runs
-        self._prediction_basis = (prediction_basis(self.motion, win, timestamp, tracks.ids, tracks.positions)
-                                  if est.motion_guided_tracking else None)
+        if est.motion_guided_tracking and not est.predict_before_estimate:
+            self._prediction_basis = prediction_basis(self.motion, win, timestamp, tracks.ids,
+                                                      tracks.positions)
         if prediction_ready is not None:
             prediction_ready()
         if not lost:
