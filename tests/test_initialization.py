@@ -103,3 +103,29 @@ def test_small_baseline_fails_parallax_check_and_outliers_are_rejected():
     assert res.inliers[moved].mean() < 0.1
     good = np.setdiff1d(np.arange(len(pts)), bad)
     assert res.inliers[good].mean() > 0.9
+
+
+def test_rotation_only_share_rejects_turns_the_translation_fits_by_chance():
+    """Few noisy correspondences of a pure rotation sometimes give a translation hypothesis
+    with enough inliers and parallax (the false re-initialisation seen in a turn in place).
+    ``max_rotation_only_fraction`` (0.5) rejects those where the rotation-only model explains at
+    least half as many correspondences: over 1200 pure-rotation pairs it accepts fewer than with
+    the test off (1.0), never one with that share, and it keeps real translations (above)."""
+    import dataclasses
+
+    accepted = {1.0: 0, 0.5: 0}
+    for n, noise in ((21, 1.0), (30, 0.7), (25, 0.8), (21, 0.5)):
+        for seed in range(300):
+            rng = np.random.default_rng(seed)
+            pts = _scene(rng, n=n)
+            bk, bc = _observe(pts, Rotation.from_rotvec([0.0, 0.3, 0.0]).as_matrix(), np.zeros(3),
+                              rng, noise_px=noise)
+            for fraction in accepted:
+                cfg = dataclasses.replace(InitializationConfig(), max_rotation_only_fraction=fraction)
+                res = initialize_two_view(bk, bc, FOCAL, cfg)
+                if res.success:
+                    accepted[fraction] += 1
+                    if fraction < 1.0:
+                        assert res.rotation_only_inliers < fraction * res.num_inliers
+    assert accepted[0.5] < accepted[1.0]
+    assert InitializationConfig().max_rotation_only_fraction == 0.5

@@ -48,7 +48,8 @@ def test_reference_file_is_the_defaults_with_our_additions_off():
                        ("estimator", "reinit_keeps_scale"), ("estimator", "init_max_candidates"),
                        ("estimator", "init_keep_reference"), ("estimator", "entropy_iteration"),
                            ("estimator", "triangulate_needs_map"),
-                       ("initialization", "parallax_distance"), ("backend", "marg_seen_fraction")}
+                       ("initialization", "parallax_distance"), ("initialization", "max_rotation_only_fraction"),
+                       ("backend", "marg_seen_fraction")}
     # The features are really off: no median-flow retry, no guided pass, no constant velocity.
     assert ref.optical_flow.retry_min_flow == 0.0 and ref.optical_flow.guess_min_zncc == -1.0
     assert ref.optical_flow.presmooth_sigma == 0.0 and ref.optical_flow.local_retry_rounds == 0

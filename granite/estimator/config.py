@@ -169,6 +169,7 @@ SECTION_LIMITS: dict[str, dict[str, dict[str, Any]]] = {
         "refine_reach": limits(0.0, 1.0, origin="ours"),
         "refine_max_evaluations": limits(1, 1000000, origin="ours"),
         "parallax_distance": limits(choices=("mean", "median"), origin="ours", reference="mean"),
+        "max_rotation_only_fraction": limits(0.0, 1.0, lo_open=True, origin="ours", reference=1.0),
     },
 }
 

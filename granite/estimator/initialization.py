@@ -4,7 +4,8 @@ For one keyframe ``k`` and the current frame ``c`` with tracked correspondences 
 vectors in each camera frame), relative-motion hypotheses come from the 5-point essential matrix
 and from a homography, both in OpenCV's RANSAC on normalised image coordinates. The best
 hypothesis is compared with the rotation-only explanation; it must have more inliers and a
-smaller (truncated) sum of squared reprojection errors. The translation is then scaled so that
+smaller (truncated) sum of squared reprojection errors, and (ours, ``max_rotation_only_fraction``)
+the rotation-only model must explain fewer than half as many correspondences. The translation is then scaled so that
 the mean distance of the triangulated points from camera ``k`` equals ``mean_distance`` (ρ̄),
 and the initialisation is accepted when the parallax α = 2 atan(|t| / 2ρ̄) (Eq. 8) reaches the
 threshold.
@@ -44,6 +45,10 @@ class InitializationConfig:
     #: triangulated inliers' distances (ours: robust to the nearly parallax-free far points
     #: whose triangulated distance is arbitrary and dominates the mean outdoors)
     parallax_distance: str = "median"
+    #: ours (1.0 = off, the reference): a hypothesis is rejected when the rotation-only model
+    #: explains at least this fraction as many correspondences as it does (a pair the camera
+    #: only turned between; the translation then fits the noise)
+    max_rotation_only_fraction: float = 0.5
 
 
 @dataclass
@@ -223,6 +228,10 @@ def initialize_two_view(
         return result
     if not (n_in > rot_inliers and score(best) < float(np.sum(np.minimum(rot_err, thr_sq)))):
         result.reason = "rotation-only motion explains the correspondences as well"
+        return result
+    if config.max_rotation_only_fraction < 1.0 and rot_inliers >= config.max_rotation_only_fraction * n_in:
+        result.reason = (f"rotation-only motion explains {rot_inliers} of the {n_in} inliers "
+                         f"(>= {config.max_rotation_only_fraction:g})")
         return result
 
     distances = np.linalg.norm(best.points[best_inliers], axis=1)
