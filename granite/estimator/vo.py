@@ -93,8 +93,8 @@ class MonocularVO:
         self._previous_frame: int | None = None
         #: timestamps of the window's frames (the keyframe-age rule of the window policy)
         self._timestamps: dict[int, float] = {}
-        #: what the next frame's predictions are made from (motion-guided tracking), fixed
-        #: by :meth:`estimate` once the last frame's pose and landmarks are final
+        #: what the next frame's predictions are made from (motion-guided tracking), fixed by
+        #: :meth:`note_tracks` (``predict_before_estimate``) or inside :meth:`estimate`
         self._prediction_basis: PredictionBasis | None = None
         #: the last predictions handed to the frontend (ids, pixels)
         self._last_prediction: tuple[np.ndarray, np.ndarray] | None = None
@@ -243,8 +243,9 @@ class MonocularVO:
     # ----------------------------------------------------------------------------- main
     def predict_tracks(self, timestamp: float) -> tuple[np.ndarray, np.ndarray] | None:
         """The frontend's guesses for a frame at ``timestamp`` (motion-guided tracking): the
-        only data that flows from the estimator back into the frontend. Made from the last
-        estimated frame's tracks, final pose and landmarks (:class:`PredictionBasis`)."""
+        only data that flows from the estimator back into the frontend, made from the basis
+        (:class:`PredictionBasis`) fixed for the last frame: by :meth:`note_tracks` before its
+        estimator step (``predict_before_estimate``, the default) or after its optimisation."""
         basis = self._prediction_basis
         self._last_prediction = None if basis is None else basis.predict(self.camera, timestamp)
         return self._last_prediction
@@ -291,10 +292,10 @@ class MonocularVO:
     def estimate(self, frame_id: int, timestamp: float, image: np.ndarray,
                  tracks: OpticalFlowResult, start: float, prediction_ready=None):
         """The estimator's part of :meth:`process` given the frame's tracks: optimisation,
-        keyframes, restart, motion model, then the next frame's predictions are fixed
-        (:meth:`predict_tracks`; ``prediction_ready()`` is called then, e.g. to start the
-        next frame's tracking), then Λ_scaledrift and marginalisation, which do not change
-        them. Returns what :meth:`finish` needs, or the finished :class:`FrameOutput` of a
+        keyframes, restart, motion model; then, with ``predict_before_estimate = false``, the
+        next frame's prediction basis is fixed and ``prediction_ready()`` is called (e.g. to
+        start the next frame's tracking); then Λ_scaledrift and marginalisation, which change
+        nothing a prediction reads. Returns what :meth:`finish` needs, or the finished :class:`FrameOutput` of a
         skipped frame."""
         est = self.config.estimator
         if tracks.rejected is not None:  # blank / wrong size: the frontend kept its last frame
@@ -303,7 +304,6 @@ class MonocularVO:
         win = self.window
         starts_submap = self.state is MapState.EMPTY
         guess = np.eye(4) if starts_submap else self.motion.predict(timestamp)
-
         win.add_frame(frame_id, guess, is_keyframe=starts_submap)
         self._timestamps[frame_id] = timestamp
         keyframe_taken = False
