@@ -13,35 +13,23 @@ Ground truth is required.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _vo_datasets import parse_config_and_datasets  # noqa: E402
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("datasets", nargs="+", type=Path)
-    ap.add_argument("--config", type=Path, default=None, help="VO configuration (TOML)")
-    args = ap.parse_args(argv)
-
-    from granite.errors import GraniteError
-    from granite.estimator.config import VoConfig
+    parsed = parse_config_and_datasets(__doc__.splitlines()[0], argv)
+    if parsed is None:
+        return 2
+    config, datasets = parsed
     from granite.estimator.runner import run_vo
     from granite.evaluation.turn import turn_rotation_error
-    from granite.io import open_dataset
 
-    try:
-        config = VoConfig.load(args.config) if args.config else VoConfig()
-        datasets = [open_dataset(p) for p in args.datasets]
-    except GraniteError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    for ds in datasets:
-        if ds.ground_truth is None:
-            print(f"error: {ds.root}: no ground truth", file=sys.stderr)
-            return 2
     print("| dataset | turn (estimate frames) | true rotation deg | max rotation error deg | restarts |")
     print("| --- | --- | ---: | ---: | ---: |")
     for ds in datasets:
