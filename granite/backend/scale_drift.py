@@ -39,9 +39,8 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.linalg
 
-from granite.backend.hessian import marginalize_dense
+from granite.backend.hessian import information_schur_complement, marginalize_dense
 from granite.geometry import hat
 
 if TYPE_CHECKING:
@@ -172,33 +171,7 @@ def relative_translation_information(H: np.ndarray, poses: np.ndarray) -> np.nda
     is_keep[1:, :3] = True  # relative translations; the oldest pose and all rotations go
     keep = np.flatnonzero(is_keep.ravel())
     marg = np.flatnonzero(~is_keep.ravel())
-    return _schur_complement(0.5 * (H_rel + H_rel.T), keep, marg)
-
-
-#: The Cholesky path of :func:`_schur_complement` is taken when the Jacobi-scaled block to
-#: eliminate has all squared pivots above this (its condition number is below about 1e12, the
-#: rank cut-off of ``hessian._generalized_inverse``); otherwise the generalised inverse.
-_CHOLESKY_MIN_PIVOT2 = 1e-12
-
-
-def _schur_complement(H: np.ndarray, keep: np.ndarray, marg: np.ndarray) -> np.ndarray:
-    """``H_kk - H_km H_mm^-1 H_mk`` by a Jacobi-scaled Cholesky factorisation of ``H_mm``
-    (a tenth of the eigen-decomposition's cost); :func:`marginalize_dense` (generalised inverse)
-    when ``H_mm`` is singular or nearly so."""
-    H_mm = H[np.ix_(marg, marg)]
-    d = np.diag(H_mm)
-    if marg.size and np.all(d > 0.0):
-        sc = 1.0 / np.sqrt(d)
-        try:
-            L = np.linalg.cholesky(H_mm * sc[:, None] * sc[None, :])
-        except np.linalg.LinAlgError:
-            L = None
-        if L is not None and np.min(np.diag(L)) ** 2 > _CHOLESKY_MIN_PIVOT2:
-            X = scipy.linalg.solve_triangular(L, sc[:, None] * H[np.ix_(marg, keep)],
-                                              lower=True, check_finite=False)
-            out = H[np.ix_(keep, keep)] - X.T @ X
-            return 0.5 * (out + out.T)
-    return marginalize_dense(H, np.zeros(H.shape[0]), keep, marg)[0]
+    return information_schur_complement(0.5 * (H_rel + H_rel.T), keep, marg)
 
 
 def indicator_from_information(H_t: np.ndarray, translations: np.ndarray
