@@ -128,4 +128,3 @@ def test_rotation_only_share_rejects_turns_the_translation_fits_by_chance():
                     if fraction < 1.0:
                         assert res.rotation_only_inliers < fraction * res.num_inliers
     assert accepted[0.5] < accepted[1.0]
-    assert InitializationConfig().max_rotation_only_fraction == 0.5

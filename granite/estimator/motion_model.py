@@ -119,7 +119,6 @@ def bearing_rotation(camera, predicted_uv: np.ndarray, tracked_uv: np.ndarray,
     if ok.sum() < min_pairs:
         return None
     b_p, b_t = b_p[ok], b_t[ok]
-    R = None
     for _ in range(2):
         U, _, Vt = np.linalg.svd(b_t.T @ b_p)
         D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
