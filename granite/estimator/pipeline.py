@@ -14,19 +14,25 @@ The concurrent pipeline (``concurrent=True``) has three helper threads besides t
   <granite.optical_flow.FrameToFrameOpticalFlow.prepare>`, OpenCV and GIL-free numba kernels)
   while the estimator works on frame k;
 * the **tracker** tracks the points into frame k+1 and detects new corners
-  (:class:`~granite.optical_flow.frame_to_frame.FlowJob`), splitting the points, while the
-  caller waits for them, with
-* the **helper**, which runs the first half of the points' guided / zero-motion passes (the
-  kernel is per point independent there; the median and local passes follow over all points).
+  (:class:`~granite.optical_flow.frame_to_frame.FlowJob`);
+* the **helper**, which joins the points' guided / zero-motion passes (the kernel is per point
+  independent there; the median and local passes follow over all points) when the tracking
+  was started while the caller waits for it.
+
+Work sharing: those per-point passes run in chunks of points that any thread claims through
+an atomic counter inside the GIL-free kernel (:mod:`granite.optical_flow.work_share`). The
+caller's thread, once it has finished frame k and waits for frame k+1's tracks, claims the
+chunks left (:meth:`FlowJob.wait <granite.optical_flow.frame_to_frame.FlowJob.wait>`), so
+the second core is not idle whichever of tracking and estimation is the longer.
 
 The tracking of frame k+1 starts as soon as its inputs exist: without motion-guided tracking,
 and with it when the predictions are made before the estimator step (``[estimator]
 predict_before_estimate``, the default), right after frame k's tracks are known
 (:meth:`MonocularVO.note_tracks`), so it overlaps the whole estimator of frame k as in the
-reference (on one tracker thread: the caller's thread is busy); with ``predict_before_estimate
+reference (on the tracker thread, joined by the caller when it is done with frame k); with ``predict_before_estimate
 = false`` once frame k's pose and landmarks are optimised (:meth:`MonocularVO.estimate` calls
 back before Λ_scaledrift and marginalisation), so it overlaps the rest of frame k and
-:meth:`MonocularVO.finish`, splitting its points with the helper thread. Every piece of
+:meth:`MonocularVO.finish`, shared with the helper thread from the start. Every piece of
 state is written by one thread at a time in the sequential order of the operations, and every
 computation gets the same inputs as in the sequential mode, so trajectories, diagnostics and
 tracks are bit-identical (``tests/test_pipeline.py``); ``concurrent=False`` (``granite run
@@ -113,8 +119,8 @@ class VoPipeline:
                                   name="granite-reader", daemon=True)
         tracker = ThreadPoolExecutor(1, thread_name_prefix="granite-tracker")
         helper = ThreadPoolExecutor(1, thread_name_prefix="granite-helper")
-        # the points of a frame begun early are split over two threads only while the caller
-        # waits for them; when the whole estimator step runs meanwhile, one tracker thread
+        # the helper joins the tracking of a frame begun early only while the caller waits for
+        # it; when the whole estimator step runs meanwhile, the caller joins at its end
         split_early = helper if waits else None
 
         def take():
@@ -131,7 +137,8 @@ class VoPipeline:
             frame, prep = item
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp), split_early)
+                job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp), split_early,
+                                 share_points=True)
             if job.rejected is None:
                 tracker.submit(job.run)
             return frame, job, caught
@@ -157,7 +164,8 @@ class VoPipeline:
                         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno,
                                                source=w.source)
                 else:
-                    job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp), helper)
+                    job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp), helper,
+                                     share_points=True)
                     job.run()
                 pending = None
                 t = time.perf_counter()

@@ -29,6 +29,7 @@ from granite.optical_flow.config import OpticalFlowConfig
 from granite.optical_flow.detection import detect_new_points
 from granite.optical_flow.noise import estimate_noise, level_noise_gains
 from granite.optical_flow.patterns import make_pattern
+from granite.optical_flow.work_share import PointShare
 from granite.optical_flow.pyramid import SUPPORTED_DTYPES, ImagePyramid, build_pyramid
 from granite.optical_flow.tracking import new_template_cache, pass_order, track_points
 
@@ -84,7 +85,8 @@ class FlowJob:
     """The tracking and detection of one frame (:meth:`FrameToFrameOpticalFlow.begin`): pure
     work on arrays that no one else writes until :meth:`FrameToFrameOpticalFlow.complete`.
     :meth:`run` does it (in any thread, once: the first caller); :meth:`wait` returns when it
-    is done (running it itself when no thread has started it)."""
+    is done (running it itself when no thread has started it, otherwise claiming what is left
+    of the tracking's per-point passes, :attr:`share`)."""
 
     def __init__(self, timestamp: float, prepared: PreparedImage, rejected: str | None):
         self.timestamp = timestamp
@@ -96,6 +98,9 @@ class FlowJob:
         self.config = None
         self.output = None
         self.rows = None
+        #: the tracking's per-point passes, which a waiting thread may join (:meth:`wait`), or
+        #: None (``begin(..., share_points=False)``)
+        self.share: PointShare | None = None
         self.timing: dict[str, float] = {}
         self._done = threading.Event()
         self._error: BaseException | None = None
@@ -128,12 +133,16 @@ class FlowJob:
         except BaseException as exc:  # re-raised by wait() in the caller's thread
             self._error = exc
         finally:
+            if self.share is not None:
+                self.share.close()
             self._done.set()
 
     def wait(self) -> None:
         if self.rejected is not None:
             return
         self.run()  # here, unless a thread has taken it already
+        if self.share is not None:
+            self.share.help()  # claims what is left of the tracking's per-point passes
         self._done.wait()
         if self._error is not None:
             raise self._error
@@ -228,14 +237,17 @@ class FrameToFrameOpticalFlow:
         job.run()
         return self.complete(job)
 
-    def begin(self, timestamp: float, image, predicted=None, executor=None) -> FlowJob:
+    def begin(self, timestamp: float, image, predicted=None, executor=None,
+              share_points: bool = False) -> FlowJob:
         """The first half of :meth:`process`: the checks that need the tracker (image size),
         the guesses and the inputs of the tracking. ``image``: an image or its
         :class:`PreparedImage`. The returned job's :meth:`FlowJob.run` (tracking and detection:
         numba kernels and OpenCV, no tracker state) may then run in another thread while the
         caller works on other data; :meth:`complete` must follow before the next ``begin``
-        (it waits for ``run``). Nothing of the tracker changes before :meth:`complete`, except
-        the choice of the template storage the job writes."""
+        (it waits for ``run``). With ``share_points`` a thread that waits for the job
+        (:meth:`FlowJob.wait`) meanwhile joins the tracking's per-point passes (same results).
+        Nothing of the tracker changes before :meth:`complete`, except the choice of the
+        template storage the job writes."""
         prep = image if isinstance(image, PreparedImage) else self.prepare(image)
         reason = prep.rejected
         if reason is None and self.image_size is not None:
@@ -250,6 +262,8 @@ class FrameToFrameOpticalFlow:
             self.image_size = (prep.image.shape[1], prep.image.shape[0])
         cfg = self.config
         job = FlowJob(float(timestamp), prep, None)
+        if share_points:
+            job.share = PointShare()
         ids = self._ids
         job.cache = self._take_cache(len(ids))
         if self._pyramid is not None and len(ids):
@@ -259,6 +273,7 @@ class FrameToFrameOpticalFlow:
                 fb_var = cfg.fb_noise_factor**2 * (self._noise**2 + prep.noise**2) * self._gains**2
             prev, pyramid = self._pyramid, prep.pyramid
             points, levels, rows, cache_a, cache_b = self._points, self._levels, self._rows, self._cache, job.cache
+            share = job.share  # not the job itself: no reference cycle keeping its arrays alive
 
             def track():
                 return track_points(
@@ -271,7 +286,7 @@ class FrameToFrameOpticalFlow:
                                      cfg.guided_levels_above >= 0),
                     local_neighbours=cfg.local_retry_neighbours,
                     fb_var=fb_var, fb_max_sq=cfg.fb_max_sq, executor=executor,
-                    guided_levels_above=cfg.guided_levels_above,
+                    guided_levels_above=cfg.guided_levels_above, share=share,
                 )
             job.track = track
         job.inputs = (self._ids, self._points, self._levels, self._angles)

@@ -19,6 +19,7 @@ from numba import njit
 from granite.optical_flow.patch import FASTMATH as _FASTMATH
 from granite.optical_flow.noise import translation_lambda_max
 from granite.optical_flow.local_flow import local_guesses
+from granite.optical_flow.work_share import PointShare, fetch_add
 from granite.optical_flow.patch import (
     AUX_ROWS,
     in_bounds,
@@ -199,7 +200,7 @@ def track_points(
     st_b, data_b, valid_b, jac_b, aux_b,
     pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
     guess=None, order=None, min_zncc_guess=0.9, local_neighbours=8,
-    fb_var=None, fb_max_sq=np.inf, executor=None, guided_levels_above=-1,
+    fb_var=None, fb_max_sq=np.inf, executor=None, guided_levels_above=-1, share=None,
 ):
     """Track all points of image A into image B with a forward-backward check.
 
@@ -241,11 +242,14 @@ def track_points(
             and the one above only. Needs at least 3 tracked points; guesses shorter than
             1 px, or within 2 px of where the point's earlier forward attempt ended, are
             skipped.
-        executor: optional ``concurrent.futures`` executor with a free worker thread: the
-            leading guided and zero-motion passes (per point independent) of the first half
-            of the points run there while the calling thread does the second half (the
-            kernels release the GIL); the median and local-flow passes follow over all
-            points. The results are bit-identical to a call without it.
+        share: optional :class:`~granite.optical_flow.work_share.PointShare`: the leading
+            guided and zero-motion passes (per point independent) run in chunks of
+            :data:`SHARE_CHUNK` points that other threads may claim meanwhile
+            (:meth:`PointShare.help`, e.g. the caller's thread once it would otherwise wait
+            for the result); the median and local-flow passes follow over all points, on this
+            thread. The results are bit-identical to a call without it.
+        executor: optional ``concurrent.futures`` executor with a free worker thread, which
+            helps from the start (a share is made if none is given).
     Returns:
         (new_points (N, 2), theta (N,), status (N,) bool): status is True when the point was
         tracked A -> B and back B -> A to within ``fb_threshold_sq`` (squared distance in
@@ -275,23 +279,28 @@ def track_points(
     tail = (float(min_zncc_guess), int(local_neighbours), fb_var, float(fb_max_sq),
             int(guided_levels_above))
     n = points.shape[0]
-    if executor is None or n < _MIN_SPLIT:
+    if share is None and executor is not None:
+        share = PointShare()
+    if share is None or n < _MIN_SHARED:
+        if share is not None:
+            share.close()
         return _track_points(*args, order, *tail)[:3]
     state = _pass_state(n)
     m = independent_passes(order)
-    half = n // 2
-    first = executor.submit(_track_passes, *args, order[:m], *tail, 0, half, *state)
-    try:
-        _track_passes(*args, order[:m], *tail, half, n, *state)
-    finally:
-        first.result()
+    if executor is not None:
+        executor.submit(share.help)
+    share.run(lambda: _track_passes_claimed(*args, order[:m], *tail, share.counter, SHARE_CHUNK,
+                                            *state))
     _track_passes(*args, order[m:], *tail, 0, n, *state)
     out, theta, status = state[:3]
     return out, theta, status
 
 
-#: Fewer points than this are tracked in one thread (splitting costs ~0.1 ms).
-_MIN_SPLIT = 32
+#: Fewer points than this are tracked in one thread.
+_MIN_SHARED = 32
+#: Points per claimed chunk of a shared call (~0.2 ms of work at 640x480; claiming one costs
+#: an atomic increment).
+SHARE_CHUNK = 16
 
 
 def independent_passes(order: np.ndarray) -> int:
@@ -332,6 +341,33 @@ def _pass_state(n):
     ``score`` and the local-flow guesses ``local`` (N, 2)."""
     return (np.empty((n, 2)), np.zeros(n), np.zeros(n, dtype=np.bool_), np.zeros(n, dtype=np.bool_),
             np.full(n, -2.0), np.full((n, 2), np.nan))
+
+
+@njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _track_passes_claimed(
+    buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+    points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
+    st_b, data_b, valid_b, jac_b, aux_b,
+    pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
+    local_neighbours, fb_var, fb_max_sq, guided_levels_above, counter, chunk, out, theta, status,
+    tried, score, local,
+):
+    """:func:`_track_passes` of per point independent passes over chunks of ``chunk`` points
+    claimed from ``counter[0]`` (atomically, :func:`fetch_add`) until none is left: any
+    number of threads may run it at once on the same state."""
+    n = points.shape[0]
+    while True:
+        k0 = fetch_add(counter, 0, chunk)
+        if k0 >= n:
+            return
+        _track_passes(
+            buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
+            points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
+            st_b, data_b, valid_b, jac_b, aux_b,
+            pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
+            local_neighbours, fb_var, fb_max_sq, guided_levels_above, k0, min(k0 + chunk, n), out, theta,
+            status, tried, score, local,
+        )
 
 
 @njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
