@@ -150,3 +150,44 @@ def test_parallax_available_needs_the_eq8_baseline_at_each_frames_distance():
     assert parallax_available(t, gt, np.full(40, np.nan), 5.0) is None
     with pytest.raises(ValueError):
         parallax_available(t, gt, far[:5], 5.0)
+
+
+def test_candidates_without_parallax_are_not_tried(monkeypatch):
+    """With the default ``init_candidate_min_parallax``, a frame that only turned against every
+    keyframe costs no two-view attempt; a keyframe with a real baseline is still tried."""
+    import granite.estimator.map_initialization as mi
+    from granite.estimator.config import EstimatorConfig
+    from granite.estimator.initialization import InitializationConfig
+
+    rng = np.random.default_rng(7)
+    cam = _pinhole()
+    pts = _scene(rng, 300)
+    win = SlidingWindow(cam, BackendConfig())
+    tri = LandmarkTriangulator(win, cam, 0.03)
+
+    def observe(R_c_w, C):
+        p_c = pts @ R_c_w.T + C
+        uv, ok = cam.project(p_c)
+        ids = np.arange(len(pts))[ok & (p_c[:, 2] > 0)]
+        return FrameTracks({int(i): uv[i] for i in ids}, {int(i): 0 for i in ids})
+
+    tried = []
+    real = mi.initialize_two_view
+    monkeypatch.setattr(mi, "initialize_two_view", lambda *a: tried.append(1) or real(*a))
+    est, cfg = EstimatorConfig(), InitializationConfig()
+    tracks = {kf: observe(Rotation.from_rotvec([0.0, 0.03 * kf, 0.0]).as_matrix(), np.zeros(3))
+              for kf in range(3)}
+    for kf in range(3):
+        win.add_frame(kf, np.eye(4), is_keyframe=True)
+    R_cur = Rotation.from_rotvec([0.0, 0.12, 0.02]).as_matrix()
+    tracks[9] = observe(R_cur, np.zeros(3))  # turned in place against every keyframe
+    win.add_frame(9, np.eye(4))
+    assert est.init_candidate_min_parallax > 0.0
+    assert mi.find_map_initialization(win, tri, tracks, 9, cfg, est.init_max_candidates,
+                                      est.init_candidate_min_parallax) is None
+    assert tried == []
+    # the same turn plus a 1.5 m sideways baseline to keyframe 0: tried (and accepted)
+    tracks[9] = observe(R_cur, -R_cur @ np.array([1.5, 0.0, 0.0]))
+    init = mi.find_map_initialization(win, tri, tracks, 9, cfg, est.init_max_candidates,
+                                      est.init_candidate_min_parallax)
+    assert len(tried) >= 1 and init is not None

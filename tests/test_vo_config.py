@@ -46,6 +46,7 @@ def test_reference_file_is_the_defaults_with_our_additions_off():
                        ("estimator", "constant_velocity"), ("estimator", "motion_guided_tracking"),
                        ("estimator", "predict_before_estimate"),
                        ("estimator", "reinit_keeps_scale"), ("estimator", "init_max_candidates"),
+                       ("estimator", "init_candidate_min_parallax"),
                        ("estimator", "init_keep_reference"), ("estimator", "entropy_iteration"),
                            ("estimator", "triangulate_needs_map"),
                        ("initialization", "parallax_distance"), ("initialization", "max_rotation_only_fraction"),

@@ -21,7 +21,7 @@ from granite.estimator.initialization import (
     initialize_two_view,
 )
 from granite.estimator.landmark_creation import LandmarkTriangulator
-from granite.estimator.tracks import FrameTracks
+from granite.estimator.tracks import FrameTracks, shared_tracks
 from granite.geometry import se3_inverse
 
 
@@ -82,22 +82,23 @@ def init_candidates(window: SlidingWindow, triangulator: LandmarkTriangulator,
     """The keyframes of ``window`` sharing at least ``min_shared`` tracks with ``frame_id``,
     most rotation-compensated parallax first (ties: the older keyframe)."""
     cur = tracks[frame_id]
+    bear_cur, valid_cur = cur.bearings(triangulator.bearings)
     out = []
     for kf in window.keyframe_ids:
         if kf == frame_id or kf not in tracks:
             continue
         ref = tracks[kf]
-        common = [t for t in cur.positions if t in ref.positions]
+        common, rows_c, rows_k = shared_tracks(cur, ref)
         if len(common) < min_shared:
             continue
-        b_k, ok_k = triangulator.bearings(np.array([ref.positions[t] for t in common]))
-        b_c, ok_c = triangulator.bearings(np.array([cur.positions[t] for t in common]))
-        ok = ok_k & ok_c
+        bear_ref, valid_ref = ref.bearings(triangulator.bearings)
+        b_k, b_c = bear_ref[rows_k], bear_cur[rows_c]
+        ok = valid_ref[rows_k] & valid_cur[rows_c]
         if ok.sum() < min_shared:
             continue
         angles = rotation_compensated_parallax(b_k[ok], b_c[ok])
         par = float(np.quantile(angles, parallax_quantile)) if len(angles) else 0.0
-        out.append(InitCandidate(kf, par, np.array(common)[ok], b_k[ok], b_c[ok]))
+        out.append(InitCandidate(kf, par, common[ok], b_k[ok], b_c[ok]))
     out.sort(key=lambda c: (-c.parallax_deg, c.keyframe))
     return out
 
@@ -119,19 +120,19 @@ def find_map_initialization(window: SlidingWindow, triangulator: LandmarkTriangu
     focal = float(np.mean(triangulator.camera.params[:2]))
     if max_candidates <= 0:
         cur = tracks[frame_id]
+        bear_cur, valid_cur = cur.bearings(triangulator.bearings)
         for kf in window.keyframe_ids:
             if kf == frame_id:
                 continue
             ref = tracks[kf]
-            common = [t for t in cur.positions if t in ref.positions]
+            common, rows_c, rows_k = shared_tracks(cur, ref)
             if len(common) < config.min_inliers:
                 continue
-            b_k, ok_k = triangulator.bearings(np.array([ref.positions[t] for t in common]))
-            b_c, ok_c = triangulator.bearings(np.array([cur.positions[t] for t in common]))
-            ok = ok_k & ok_c
-            result = initialize_two_view(b_k[ok], b_c[ok], focal, config)
+            bear_ref, valid_ref = ref.bearings(triangulator.bearings)
+            ok = valid_ref[rows_k] & valid_cur[rows_c]
+            result = initialize_two_view(bear_ref[rows_k][ok], bear_cur[rows_c][ok], focal, config)
             if result.success:
-                return MapInitialization(kf, frame_id, result, np.array(common)[ok])
+                return MapInitialization(kf, frame_id, result, common[ok])
         return None
     if candidates is None:
         candidates = init_candidates(window, triangulator, tracks, frame_id, config.min_inliers)
