@@ -282,3 +282,30 @@ def test_pack_with_spread_out_frame_ids_matches_reference():
     index = {f: i for i, f in enumerate(frames)}
     _assert_pack_equal(db, index)
     _assert_pack_equal(db, index, list(range(39, -1, -3)), target_filter={7, 10**12})
+
+
+def test_ids_by_host_are_the_hosted_sets_in_host_order():
+    win = build_window(make_scene(num_frames=5, num_points=120))
+    db = win.landmarks
+    kfs = win.keyframe_ids
+    for lm_id in list(db.landmark_ids)[::7]:  # holes in the id sequence and the store
+        db.remove_landmark(lm_id)
+    expected = [i for host in kfs for i in sorted(db.hosted_by(host))]
+    assert len(expected) > 50
+    assert db.ids_by_host(kfs).tolist() == expected
+    assert db.ids_by_host(kfs[1:]).tolist() == [i for host in kfs[1:] for i in sorted(db.hosted_by(host))]
+
+
+def test_landmark_points_are_the_hosts_points_in_world_and_in_a_camera():
+    """Against the per-landmark definition: ``t_w_h + R_w_h bearing / d`` in the world, and
+    mapped by ``T_x_w`` into another frame."""
+    win = build_window(make_scene(num_frames=5, num_points=120), pose_noise=(0.1, 0.05))
+    ids = np.array(win.landmarks.landmark_ids, dtype=np.int64)
+    ids = ids[win.landmarks.inverse_distances(ids) > 0]
+    expected = np.array([win.pose(win.landmarks.landmark(i).host_frame_id)[:3, 3]
+                         + win.landmark_in_world(i)[0] / win.landmark_in_world(i)[1] for i in ids])
+    assert len(ids) > 50 and len({win.landmarks.landmark(i).host_frame_id for i in ids}) > 1
+    np.testing.assert_allclose(win.landmark_points(ids), expected, rtol=0, atol=1e-12)
+    T_x_w = np.linalg.inv(win.pose(win.frame_ids[-1]))
+    np.testing.assert_allclose(win.landmark_points(ids, T_x_w),
+                               expected @ T_x_w[:3, :3].T + T_x_w[:3, 3], rtol=0, atol=1e-12)

@@ -262,6 +262,16 @@ class LandmarkDatabase:
         lm._detach()
         self._version += 1
 
+    def ids_by_host(self, hosts) -> np.ndarray:
+        """Ids (n,) of the landmarks hosted by the frames ``hosts`` (ascending ids), host by
+        host in ascending host id, ascending within a host."""
+        n = len(self._landmarks)
+        ids = np.fromiter(self._landmarks.keys(), dtype=np.int64, count=n)
+        host = self._store.host[self._rows(ids)]
+        keep = np.isin(host, np.asarray(list(hosts), dtype=np.int64))
+        ids, host = ids[keep], host[keep]
+        return ids[np.lexsort((ids, host))]
+
     def hosted_by(self, frame_id: int) -> set[int]:
         """Ids of the landmarks hosted by a frame."""
         return set(self._hosted.get(frame_id, ()))

@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Iterable, Sequence
 
+import numba
 import numpy as np
 
 from granite.backend.config import BackendConfig
@@ -37,7 +38,6 @@ from granite.backend.problem import WindowProblem, WorkspacePool
 from granite.backend.reprojection import reprojection_residuals
 from granite.backend.solver import OptimizeReport, SolverState
 from granite.backend.solver import optimize as optimize_problem
-from granite.backend.stereographic import bearings_from_stereo
 
 
 @dataclasses.dataclass
@@ -169,17 +169,15 @@ class SlidingWindow:
 
     def landmark_points(self, landmark_ids, T_x_w: np.ndarray | None = None) -> np.ndarray:
         """Euclidean points (n, 3) of landmarks with ``d > 0`` in frame x (``T_x_w`` maps world
-        into x; the world frame without it), vectorised and grouped by host keyframe."""
+        into x; the world frame without it), vectorised over the landmarks."""
         s, d, hosts = self.landmarks.states_of(landmark_ids)
         if not len(d):
             return np.zeros((0, 3))
-        p_h = bearings_from_stereo(s) / d[:, None]
-        out = np.empty_like(p_h)
-        for host in np.unique(hosts):
-            mask = hosts == host
-            T = self.pose(int(host)) if T_x_w is None else T_x_w @ self.pose(int(host))
-            out[mask] = p_h[mask] @ T[:3, :3].T + T[:3, 3]
-        return out
+        host_ids, host_of = np.unique(hosts, return_inverse=True)
+        T = np.stack([self._frames[int(h)].T_w_c for h in host_ids])
+        if T_x_w is not None:
+            T = T_x_w @ T
+        return _points_from_hosts(s, d, host_of.astype(np.int64), T)
 
     def num_connected(self, frame_id: int) -> tuple[int, int]:
         """``(finite, infinite)``: landmarks observed in a frame with ``d > 0`` and ``d = 0``."""
@@ -296,6 +294,22 @@ class SlidingWindow:
         problem = self.problem()
         cost = self.cost_terms()
         return cost.cost(problem, cost.no_motion_pairs(problem))
+
+
+@numba.njit(cache=True, nogil=True)
+def _points_from_hosts(s: np.ndarray, d: np.ndarray, host_of: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``T[host_of[i]] * (bearing(s[i]) / d[i])`` (n, 3): landmark ``i`` (stereographic bearing
+    ``s`` (n, 2), inverse distance ``d > 0`` in its host) through its host's pose ``T`` (H, 4, 4)."""
+    n = s.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        n2 = s[i, 0] * s[i, 0] + s[i, 1] * s[i, 1]
+        k = 1.0 / ((1.0 + n2) * d[i])
+        b0, b1, b2 = 2.0 * s[i, 0] * k, 2.0 * s[i, 1] * k, (1.0 - n2) * k
+        h = host_of[i]
+        for r in range(3):
+            out[i, r] = T[h, r, 0] * b0 + T[h, r, 1] * b1 + T[h, r, 2] * b2 + T[h, r, 3]
+    return out
 
 
 def _check_pose(T: np.ndarray) -> np.ndarray:

@@ -105,8 +105,7 @@ class MonocularVO:
     def window_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
         """Finite landmarks of the window: world points (M, 3) and inverse distances (M,)."""
         db = self.window.landmarks
-        ids = np.array([i for host in self.window.keyframe_ids for i in sorted(db.hosted_by(host))],
-                       dtype=np.int64)
+        ids = db.ids_by_host(self.window.keyframe_ids)
         inv = db.inverse_distances(ids)
         return self.window.landmark_points(ids[inv > 0.0]), inv[inv > 0.0]
 
