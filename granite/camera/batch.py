@@ -152,14 +152,14 @@ def _by_model_dispatch(operation, model, kp, values, want_jac):
     return dispatch
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def project_points(model: int, kp: np.ndarray, points: np.ndarray, want_jac: bool):
     """``(uv (N,2), d_uv_d_point (N,2,3), d_uv_d_intrinsics (N,2,P), valid (N,))`` of
     camera-frame points (N,3)."""
     return _by_model(_PROJECT, model, kp, points, want_jac)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def unproject_pixels(model: int, kp: np.ndarray, uv: np.ndarray, want_jac: bool):
     """``(bearings (N,3), d_bearing_d_uv (N,3,2), valid (N,))`` of pixels (N,2)."""
     return _by_model(_UNPROJECT, model, kp, uv, want_jac)
