@@ -66,3 +66,27 @@ def test_editing_a_called_module_recompiles_the_caller(tmp_path):
     assert results == [101, 102, 102]
     toy_caches = {p.name for p in (tmp_path / "cache").iterdir()} - {source_digest()[:16]}
     assert len(toy_caches) == 2  # one cache per source version of the toy package
+
+
+def test_freshly_compiled_and_cached_backend_kernels_give_the_same_bits(tmp_path):
+    """The process that compiles the kernels into an empty cache and a later one that loads
+    them compute the same window solution bit for bit (fast-math reassociation in
+    ``schur_reduce`` broke this: docs/backend.md)."""
+    env = dict(os.environ, PYTHONPATH=str(PACKAGE_DIR.parent),
+               GRANITE_NUMBA_CACHE_ROOT=str(tmp_path / "cache"), OPENBLAS_NUM_THREADS="1")
+    env.pop("NUMBA_CACHE_DIR", None)
+    code = textwrap.dedent("""
+        import numpy as np
+        from granite.backend.synthetic import build_window, make_scene
+        win = build_window(make_scene(num_frames=6, num_points=200), pose_noise=(0.05, 0.02),
+                           inv_dist_noise=0.1, seed=4)
+        win.optimize(max_iterations=3)
+        poses = np.stack([win.pose(f) for f in win.frame_ids])
+        print(float(np.abs(poses).sum()).hex(), float(win.hessian_blocks().H.sum()).hex())
+    """)
+    runs = [subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                           timeout=300) for _ in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr[-2000:]
+    assert runs[0].stdout.strip() == runs[1].stdout.strip()
+    assert any(p.suffix == ".nbi" for p in (tmp_path / "cache").rglob("*"))  # really cached

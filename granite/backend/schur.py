@@ -14,14 +14,7 @@ import numpy as np
 import scipy.linalg
 
 
-#: LLVM fast-math flags of the accumulation kernels: reassociation and FMA contraction of the
-#: sums (vectorised; 10 % of :func:`schur_reduce` on the 640x480 spiral, results within 1e-14
-#: relative), without the no-NaN / no-infinity assumptions (a diverging state must still give
-#: non-finite values). Deterministic: the same machine code for the same inputs.
-ACCUMULATE_FLAGS = {"contract", "reassoc", "nsz", "arcp"}
-
-
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=ACCUMULATE_FLAGS)
+@numba.njit(cache=True, nogil=True, inline="always")
 def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, Jb: np.ndarray, k: int) -> None:
     """``Hb[i, j] += wJa^T Jb[k]`` for 2x6 Jacobians (block layout (K,K,6,6)). Inlined into
     :func:`schur_reduce` (LLVM left it a call: 5 % of that kernel)."""
@@ -32,7 +25,7 @@ def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, Jb: np.ndarray, k
             Hb[i, j, c1, c2] += a0 * Jb[k, 0, c2] + a1 * Jb[k, 1, c2]
 
 
-@numba.njit(cache=True, nogil=True, inline="always", fastmath=ACCUMULATE_FLAGS)
+@numba.njit(cache=True, nogil=True, inline="always")
 def _add_jtwj_lower(Hb: np.ndarray, i: int, wJa: np.ndarray, Jb: np.ndarray, k: int) -> None:
     """The entries ``c2 <= c1`` of ``Hb[i, i] += wJa^T Jb[k]``: the only entries of a diagonal
     block that :func:`schur_reduce` assembles into ``H`` (its mirror loop writes the lower
@@ -120,7 +113,7 @@ def _landmark_qr(Al: np.ndarray, nr: int, Q: np.ndarray, Hll_inv: np.ndarray,
     return rank
 
 
-@numba.njit(cache=True, nogil=True, fastmath=ACCUMULATE_FLAGS)
+@numba.njit(cache=True, nogil=True)
 def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tgt: np.ndarray,
                  r: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_t: np.ndarray,
                  J_l: np.ndarray, damping: float, lm_lambda: float):
