@@ -121,7 +121,7 @@ class VoPipeline:
         helper = ThreadPoolExecutor(1, thread_name_prefix="granite-helper")
         # the helper joins the tracking of a frame begun early only while the caller waits for
         # it; when the whole estimator step runs meanwhile, the caller joins at its end
-        split_early = helper if waits else None
+        early_helper = helper if waits else None
 
         def take():
             t = time.perf_counter()
@@ -137,7 +137,7 @@ class VoPipeline:
             frame, prep = item
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp), split_early,
+                job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp), early_helper,
                                  share_points=True)
             if job.rejected is None:
                 tracker.submit(job.run)

@@ -229,8 +229,8 @@ class FrameToFrameOpticalFlow:
         result, bit for bit.
 
         ``prepared``: :meth:`prepare` of ``image``, when done already. ``executor``: a
-        ``concurrent.futures`` executor with a free worker, over which the tracking kernel
-        splits its points (bit-identical results). ``process`` = :meth:`begin` then
+        ``concurrent.futures`` executor with a free worker, which joins the tracking's
+        per-point passes (bit-identical results). ``process`` = :meth:`begin` then
         :meth:`complete`.
         """
         job = self.begin(timestamp, image if prepared is None else prepared, predicted, executor)
