@@ -9,7 +9,9 @@ with the decoupled increment and inverse distances with ``d <- clip(d, 0, max_in
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -30,20 +32,25 @@ class OptimizeReport:
     """Result of :meth:`SlidingWindow.optimize`.
 
     ``costs[i]`` is the total cost at the i-th linearisation; ``initial_cost`` the cost before
-    the first step, ``final_cost`` after the last. ``snapshot`` is the linearised system at
+    the first step, ``final_cost`` after the last (evaluated when first read: the VO does not
+    need it). ``snapshot`` is the linearised system at
     iteration ``snapshot_iteration`` (0-based; the last one if the loop stopped earlier).
     ``timings`` holds seconds spent per stage, summed over iterations.
     """
 
     iterations: int
     initial_cost: float
-    final_cost: float
+    final_cost_of: Callable[[], float] = dataclasses.field(repr=False, compare=False)
     converged: bool
     costs: tuple[float, ...]
     snapshot: WindowHessian | None
     timings: dict[str, float]
     #: a Gauss-Newton step raised the cost and was undone (Levenberg-Marquardt took over).
     reverted: bool = False
+
+    @functools.cached_property
+    def final_cost(self) -> float:
+        return self.final_cost_of()
 
 
 @dataclasses.dataclass
@@ -80,7 +87,7 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
     lm_mode = cfg.use_lm or state.lm_calls_left > 0
     state.lm_calls_left = max(state.lm_calls_left - 1, 0)
     if not problem.frame_ids:
-        return OptimizeReport(0, 0.0, 0.0, True, (), None, timings)
+        return OptimizeReport(0, 0.0, lambda: 0.0, True, (), None, timings)
     for it in range(iters):
         t0 = time.perf_counter()
         lin, red = cost.linearize(problem, 0.0)
@@ -123,8 +130,9 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
             if status != "accepted":
                 converged = status == "converged"
                 break
-    final_cost = cost.cost(problem, cost.no_motion_pairs(problem))
-    return OptimizeReport(done, costs[0], final_cost, converged, tuple(costs), snapshot,
+    # the problem's states are final here and nothing changes them later
+    return OptimizeReport(done, costs[0], lambda: cost.cost(problem, cost.no_motion_pairs(problem)),
+                          converged, tuple(costs), snapshot,
                           timings, reverted)
 
 
