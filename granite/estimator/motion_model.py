@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from granite.backend import SlidingWindow
@@ -118,14 +119,46 @@ def bearing_rotation(camera, predicted_uv: np.ndarray, tracked_uv: np.ndarray,
     ok = ok_p & ok_t
     if ok.sum() < min_pairs:
         return None
-    b_p, b_t = b_p[ok], b_t[ok]
-    for _ in range(2):
-        U, _, Vt = np.linalg.svd(b_t.T @ b_p)
-        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-        R = U @ D @ Vt
-        angle = np.linalg.norm(np.cross(b_p @ R.T, b_t), axis=1)
-        keep = angle <= 3.0 * np.median(angle)
-        if keep.sum() < min_pairs or keep.all():
-            break
-        b_p, b_t = b_p[keep], b_t[keep]
-    return R
+    return _kabsch_with_outlier_pass(np.ascontiguousarray(b_p[ok]), np.ascontiguousarray(b_t[ok]),
+                                     min_pairs)
+
+
+@numba.njit(cache=True, nogil=True)
+def _kabsch_rotation(b_p: np.ndarray, b_t: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """``R`` minimising ``sum |b_t - R b_p|^2`` over the pairs ``use`` (proper rotation)."""
+    M = np.zeros((3, 3))
+    for i in range(b_p.shape[0]):
+        if use[i]:
+            for r in range(3):
+                for c in range(3):
+                    M[r, c] += b_t[i, r] * b_p[i, c]
+    U, _, Vt = np.linalg.svd(M)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    return U @ D @ Vt
+
+
+@numba.njit(cache=True, nogil=True)
+def _kabsch_with_outlier_pass(b_p: np.ndarray, b_t: np.ndarray, min_pairs: int) -> np.ndarray:
+    """:func:`bearing_rotation` on unit bearings (n, 3): Kabsch, then once more without the
+    pairs whose residual angle (sine) exceeds 3 medians, if that leaves ``min_pairs``."""
+    n = b_p.shape[0]
+    use = np.ones(n, dtype=np.bool_)
+    R = _kabsch_rotation(b_p, b_t, use)
+    angle = np.empty(n)
+    for i in range(n):
+        q0 = R[0, 0] * b_p[i, 0] + R[0, 1] * b_p[i, 1] + R[0, 2] * b_p[i, 2]
+        q1 = R[1, 0] * b_p[i, 0] + R[1, 1] * b_p[i, 1] + R[1, 2] * b_p[i, 2]
+        q2 = R[2, 0] * b_p[i, 0] + R[2, 1] * b_p[i, 1] + R[2, 2] * b_p[i, 2]
+        c0 = q1 * b_t[i, 2] - q2 * b_t[i, 1]
+        c1 = q2 * b_t[i, 0] - q0 * b_t[i, 2]
+        c2 = q0 * b_t[i, 1] - q1 * b_t[i, 0]
+        angle[i] = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+    limit = 3.0 * np.median(angle)
+    kept = 0
+    for i in range(n):
+        use[i] = angle[i] <= limit
+        kept += use[i]
+    if kept < min_pairs or kept == n:
+        return R
+    return _kabsch_rotation(b_p, b_t, use)
