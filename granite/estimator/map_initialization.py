@@ -82,25 +82,33 @@ def init_candidates(window: SlidingWindow, triangulator: LandmarkTriangulator,
     """The keyframes of ``window`` sharing at least ``min_shared`` tracks with ``frame_id``,
     most rotation-compensated parallax first (ties: the older keyframe)."""
     cur = tracks[frame_id]
-    bear_cur, valid_cur = cur.bearings(triangulator.bearings)
     out = []
     for kf in window.keyframe_ids:
         if kf == frame_id or kf not in tracks:
             continue
-        ref = tracks[kf]
-        common, rows_c, rows_k = shared_tracks(cur, ref)
-        if len(common) < min_shared:
+        shared = _shared_bearings(triangulator, cur, tracks[kf], min_shared)
+        if shared is None or len(shared[0]) < min_shared:
             continue
-        bear_ref, valid_ref = ref.bearings(triangulator.bearings)
-        b_k, b_c = bear_ref[rows_k], bear_cur[rows_c]
-        ok = valid_ref[rows_k] & valid_cur[rows_c]
-        if ok.sum() < min_shared:
-            continue
-        angles = rotation_compensated_parallax(b_k[ok], b_c[ok])
+        ids, b_k, b_c = shared
+        angles = rotation_compensated_parallax(b_k, b_c)
         par = float(np.quantile(angles, parallax_quantile)) if len(angles) else 0.0
-        out.append(InitCandidate(kf, par, common[ok], b_k[ok], b_c[ok]))
+        out.append(InitCandidate(kf, par, ids, b_k, b_c))
     out.sort(key=lambda c: (-c.parallax_deg, c.keyframe))
     return out
+
+
+def _shared_bearings(triangulator: LandmarkTriangulator, cur: FrameTracks, ref: FrameTracks,
+                     min_shared: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``(ids, bearings in ref, bearings in cur)`` of the tracks ``cur`` shares with ``ref``
+    that unproject in both (in ``cur``'s order); None when they share fewer than
+    ``min_shared`` tracks."""
+    common, rows_c, rows_k = shared_tracks(cur, ref)
+    if len(common) < min_shared:
+        return None
+    bear_cur, valid_cur = cur.bearings(triangulator.bearings)
+    bear_ref, valid_ref = ref.bearings(triangulator.bearings)
+    ok = valid_ref[rows_k] & valid_cur[rows_c]
+    return common[ok], bear_ref[rows_k][ok], bear_cur[rows_c][ok]
 
 
 def find_map_initialization(window: SlidingWindow, triangulator: LandmarkTriangulator,
@@ -119,20 +127,16 @@ def find_map_initialization(window: SlidingWindow, triangulator: LandmarkTriangu
     """
     focal = float(np.mean(triangulator.camera.params[:2]))
     if max_candidates <= 0:
-        cur = tracks[frame_id]
-        bear_cur, valid_cur = cur.bearings(triangulator.bearings)
         for kf in window.keyframe_ids:
             if kf == frame_id:
                 continue
-            ref = tracks[kf]
-            common, rows_c, rows_k = shared_tracks(cur, ref)
-            if len(common) < config.min_inliers:
+            shared = _shared_bearings(triangulator, tracks[frame_id], tracks[kf], config.min_inliers)
+            if shared is None:
                 continue
-            bear_ref, valid_ref = ref.bearings(triangulator.bearings)
-            ok = valid_ref[rows_k] & valid_cur[rows_c]
-            result = initialize_two_view(bear_ref[rows_k][ok], bear_cur[rows_c][ok], focal, config)
+            ids, b_k, b_c = shared
+            result = initialize_two_view(b_k, b_c, focal, config)
             if result.success:
-                return MapInitialization(kf, frame_id, result, common[ok])
+                return MapInitialization(kf, frame_id, result, ids)
         return None
     if candidates is None:
         candidates = init_candidates(window, triangulator, tracks, frame_id, config.min_inliers)
