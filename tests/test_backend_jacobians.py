@@ -129,6 +129,45 @@ def test_first_estimate_jacobians_use_linearisation_poses():
     np.testing.assert_allclose(fej.r, res, atol=1e-12)
 
 
+@pytest.mark.parametrize("camera_name", ["pinhole", "kb4", "ds"])
+def test_linearisation_validity_follows_the_camera_projection(camera_name):
+    """Observations whose point does not project (behind the camera) at the estimate or at the
+    linearisation point get weight 0 and zero rows; the others the camera's own pixels."""
+    _, win = _window(camera_name)
+    problem = win.problem()
+    pk = problem.packed
+    poses_lin = problem.poses.copy()
+    moved = problem.poses.copy()
+    # turn frame 1 half around at the estimate, frame 2 at the linearisation point
+    flip = np.diag([-1.0, 1.0, -1.0, 1.0])
+    moved[1] = moved[1] @ flip
+    poses_lin[2] = poses_lin[2] @ flip
+    lin = linearize(win.camera, pk, moved, poses_lin, 4.0, 1e9, 1.0)
+
+    def points(poses):
+        out = np.empty((pk.num_observations, 3))
+        for k in range(pk.num_observations):
+            i, t = pk.obs_lm[k], pk.obs_tgt[k]
+            h = pk.lm_host[i]
+            b = bearings_from_stereo(pk.lm_s[i])
+            if h == t:
+                out[k] = b
+            else:
+                T_t_h = np.linalg.inv(poses[t]) @ poses[h]
+                out[k] = T_t_h[:3, :3] @ b + T_t_h[:3, 3] * pk.lm_d[i]
+        return out
+
+    uv, valid_res = win.camera.project(points(moved))
+    _, _, _, valid_lin = win.camera.project_jacobians(points(poses_lin))
+    expected = valid_res & valid_lin
+    assert 0 < expected.sum() < len(expected)  # both kinds occur
+    np.testing.assert_array_equal(lin.valid, expected)
+    assert np.all(lin.w[~expected] == 0.0)
+    for J in (lin.r, lin.J_h, lin.J_t, lin.J_l):
+        assert np.all(J[~expected] == 0.0)
+    np.testing.assert_allclose(lin.r[expected], (uv - pk.obs_uv)[expected], atol=1e-9)
+
+
 def _dense_problem(win):
     """Dense Jacobian (finite differences) of all weighted residuals over [poses, landmarks]."""
     problem = win.problem()

@@ -23,8 +23,9 @@ All Jacobians (including ``dpi/dp``) are evaluated at the poses passed as ``pose
 current estimate for the others, as in Basalt); residuals are evaluated at ``poses``. This keeps
 the 7-dimensional monocular gauge out of the information of the prior.
 
-The projection ``pi`` and ``dpi/dp`` come from the camera model
-(``camera.project_jacobians``), called once for all observations between the two kernels.
+The projection ``pi`` and ``dpi/dp`` come from the camera model's per-point kernel
+(:func:`granite.camera.batch.project_point`), inlined into one pass over the observations that
+transforms, projects and linearises each (:func:`linearize_fused`).
 """
 
 from __future__ import annotations
@@ -33,29 +34,36 @@ import math
 
 import numba
 import numpy as np
+from numba import types
+from numba.extending import overload
 
 from granite.backend.packing import PackedObservations
+from granite.camera import batch
+from granite.camera.batch import DS, KB4, PINHOLE
 from granite.backend.stereographic import bearing_from_stereo_into
 
 
 @numba.njit(cache=True, nogil=True)
-def transform_observations(poses: np.ndarray, poses_lin: np.ndarray, lm_host: np.ndarray,
-                           lm_s: np.ndarray, lm_d: np.ndarray, obs_lm: np.ndarray,
-                           obs_tgt: np.ndarray, with_jacobians: bool):
-    """Points ``p_t`` (N,3) in the observing frames at ``poses``, and at ``poses_lin`` the points
-    ``p_lin`` (N,3) with ``dp_t`` w.r.t. the host twist (N,3,6), the target twist (N,3,6) and
-    the landmark ``[s, d]`` (N,3,3). Host observations have zero pose Jacobians. With
-    ``with_jacobians=False`` only ``p_t`` is computed (the other outputs are empty)."""
+def transform_observations(poses: np.ndarray, lm_host: np.ndarray, lm_s: np.ndarray,
+                           lm_d: np.ndarray, obs_lm: np.ndarray, obs_tgt: np.ndarray
+                           ) -> np.ndarray:
+    """Points ``p_t`` (N,3) in the observing frames at ``poses`` (the bearing itself for
+    observations in the host)."""
     n = obs_lm.shape[0]
-    m = n if with_jacobians else 0
     p = np.empty((n, 3))
-    p_lin = np.empty((m, 3))
-    J_h = np.empty((m, 3, 6))
-    J_t = np.empty((m, 3, 6))
-    J_l = np.empty((m, 3, 3))
-    transform_observations_into(poses, poses_lin, lm_host, lm_s, lm_d, obs_lm, obs_tgt,
-                                with_jacobians, p, p_lin, J_h, J_t, J_l)
-    return p, p_lin, J_h, J_t, J_l
+    b = np.empty(3)
+    Jb = np.empty((3, 2))
+    for k in range(n):
+        i = obs_lm[k]
+        h = lm_host[i]
+        t = obs_tgt[k]
+        bearing_from_stereo_into(lm_s[i, 0], lm_s[i, 1], b, Jb)
+        if h == t:
+            for r in range(3):
+                p[k, r] = b[r]
+        else:
+            _point_in_target(poses[h], poses[t], b, lm_d[i], p, k)
+    return p
 
 
 @numba.njit(cache=True, nogil=True)
@@ -70,79 +78,6 @@ def _point_in_target(T_h: np.ndarray, T_t: np.ndarray, b: np.ndarray, d: float,
 
 
 @numba.njit(cache=True, nogil=True)
-def transform_observations_into(poses: np.ndarray, poses_lin: np.ndarray, lm_host: np.ndarray,
-                                lm_s: np.ndarray, lm_d: np.ndarray, obs_lm: np.ndarray,
-                                obs_tgt: np.ndarray, with_jacobians: bool, p: np.ndarray,
-                                p_lin: np.ndarray, J_h: np.ndarray, J_t: np.ndarray,
-                                J_l: np.ndarray) -> None:
-    """:func:`transform_observations` writing into preallocated outputs (every entry is
-    overwritten)."""
-    n = obs_lm.shape[0]
-    ql = np.empty(3)
-    rb = np.empty(3)
-    b = np.empty(3)
-    Jb = np.empty((3, 2))
-    for k in range(n):
-        i = obs_lm[k]
-        h = lm_host[i]
-        t = obs_tgt[k]
-        d = lm_d[i]
-        bearing_from_stereo_into(lm_s[i, 0], lm_s[i, 1], b, Jb)
-        if h == t:
-            for r in range(3):
-                p[k, r] = b[r]
-            if with_jacobians:
-                for r in range(3):
-                    p_lin[k, r] = b[r]
-                    J_l[k, r, 0] = Jb[r, 0]
-                    J_l[k, r, 1] = Jb[r, 1]
-                    J_l[k, r, 2] = 0.0
-                    for c in range(6):
-                        J_h[k, r, c] = 0.0
-                        J_t[k, r, c] = 0.0
-            continue
-        _point_in_target(poses[h], poses[t], b, d, p, k)
-        if not with_jacobians:
-            continue
-        Th = poses_lin[h]
-        Tt = poses_lin[t]
-        _point_in_target(Th, Tt, b, d, p_lin, k)
-        for r in range(3):
-            rb[r] = Th[r, 0] * b[0] + Th[r, 1] * b[1] + Th[r, 2] * b[2]
-            ql[r] = rb[r] + (Th[r, 3] - Tt[r, 3]) * d
-        for r in range(3):
-            # row r of R_w_t^T is column r of R_w_t
-            a0 = Tt[0, r]
-            a1 = Tt[1, r]
-            a2 = Tt[2, r]
-            # landmark: dp/ds = R_t_h db/ds, dp/dd = t_t_h = R_w_t^T (t_w_h - t_w_t)
-            for c in range(2):
-                acc = 0.0
-                for m in range(3):
-                    acc += (a0 * Th[0, m] + a1 * Th[1, m] + a2 * Th[2, m]) * Jb[m, c]
-                J_l[k, r, c] = acc
-            if d == 0.0:
-                # points at infinity stay there: no inverse-distance update (as the reference)
-                J_l[k, r, 2] = 0.0
-            else:
-                J_l[k, r, 2] = (a0 * (Th[0, 3] - Tt[0, 3]) + a1 * (Th[1, 3] - Tt[1, 3])
-                                + a2 * (Th[2, 3] - Tt[2, 3]))
-            J_h[k, r, 0] = d * a0
-            J_h[k, r, 1] = d * a1
-            J_h[k, r, 2] = d * a2
-            J_t[k, r, 0] = -d * a0
-            J_t[k, r, 1] = -d * a1
-            J_t[k, r, 2] = -d * a2
-            # a^T [x]_x = (a x x)^T = [a1 x2 - a2 x1, a2 x0 - a0 x2, a0 x1 - a1 x0]
-            J_h[k, r, 3] = -(a1 * rb[2] - a2 * rb[1])
-            J_h[k, r, 4] = -(a2 * rb[0] - a0 * rb[2])
-            J_h[k, r, 5] = -(a0 * rb[1] - a1 * rb[0])
-            J_t[k, r, 3] = a1 * ql[2] - a2 * ql[1]
-            J_t[k, r, 4] = a2 * ql[0] - a0 * ql[2]
-            J_t[k, r, 5] = a0 * ql[1] - a1 * ql[0]
-
-
-@numba.njit(cache=True, nogil=True)
 def _obs_weight(level: int, d: float, inv_var: float, inf_factor: float) -> float:
     w = inv_var / (2.0 ** level)
     if d == 0.0:
@@ -150,77 +85,176 @@ def _obs_weight(level: int, d: float, inv_var: float, inf_factor: float) -> floa
     return w
 
 
-@numba.njit(cache=True, nogil=True)
-def linearize_observations(uv: np.ndarray, J_pi: np.ndarray, valid: np.ndarray,
-                           J_h3: np.ndarray, J_t3: np.ndarray, J_l3: np.ndarray,
-                           obs_uv: np.ndarray, obs_level: np.ndarray, obs_lm: np.ndarray,
-                           lm_d: np.ndarray, inv_var: float, huber: float, inf_factor: float):
-    """Residuals ``r`` (N,2), robust information weights ``w`` (N,) (0 for invalid projections),
-    pixel Jacobians w.r.t. host twist, target twist and landmark (N,2,6), (N,2,6), (N,2,3),
-    and the robust cost ``sum (2 - h) h w0 |r|^2`` (Huber: ``h = min(1, k/|r|)``, so
-    ``w0 |r|^2`` inside and ``w0 (2 k |r| - k^2)`` outside the threshold ``k``)."""
-    n = obs_lm.shape[0]
-    r = np.empty((n, 2))
-    w = np.empty(n)
-    J_h = np.empty((n, 2, 6))
-    J_t = np.empty((n, 2, 6))
-    J_l = np.empty((n, 2, 3))
-    cost = linearize_observations_into(uv, J_pi, valid, J_h3, J_t3, J_l3, obs_uv, obs_level,
-                                       obs_lm, lm_d, inv_var, huber, inf_factor, r, w, J_h,
-                                       J_t, J_l)
-    return r, w, J_h, J_t, J_l, cost
+def _linearize_fused(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d, obs_lm,
+                     obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor, r, w, J_h, J_t,
+                     J_l, valid):
+    """Typing stub of :func:`linearize_fused`'s loop for one camera model (njit only)."""
+    raise NotImplementedError
 
 
-@numba.njit(cache=True, nogil=True)
-def linearize_observations_into(uv, J_pi, valid, J_h3, J_t3, J_l3, obs_uv, obs_level, obs_lm,
-                                lm_d, inv_var, huber, inf_factor, r, w, J_h, J_t, J_l) -> float:
-    """:func:`linearize_observations` writing into preallocated outputs; returns the cost.
-    Invalid projections get ``w = 0`` and zero residual/Jacobians."""
-    n = obs_lm.shape[0]
-    cost = 0.0
-    for k in range(n):
-        if not valid[k]:
-            w[k] = 0.0
-            r[k, 0] = 0.0
-            r[k, 1] = 0.0
+@overload(_linearize_fused, prefer_literal=True, jit_options={"cache": True})
+def _linearize_fused_loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d, obs_lm,
+                          obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor, r, w, J_h,
+                          J_t, J_l, valid):
+    """The loop specialised on the camera model (its per-point projection inlined)."""
+    if not isinstance(model, types.IntegerLiteral):
+        return None
+    model_id = model.literal_value
+    nk = batch.num_intrinsics(model_id)
+
+    def loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d, obs_lm, obs_tgt,
+             obs_uv, obs_level, inv_var, huber, inf_factor, r, w, J_h, J_t, J_l, valid):
+        # one observation's intermediates (row 0): point at the estimate and at the
+        # linearisation point, its pixels, d pixel / d point, 3-D Jacobians
+        p = np.empty((1, 3))
+        p_lin = np.empty((1, 3))
+        uv = np.empty((1, 2))
+        uv_res = np.empty((1, 2))
+        J_pi = np.empty((1, 2, 3))
+        J_k = np.empty((1, 2, nk))
+        no_jp = np.empty((0, 2, 3))
+        no_jk = np.empty((0, 2, nk))
+        J_h3 = np.empty((3, 6))
+        J_t3 = np.empty((3, 6))
+        J_l3 = np.empty((3, 3))
+        ql = np.empty(3)
+        rb = np.empty(3)
+        b = np.empty(3)
+        Jb = np.empty((3, 2))
+        cost = 0.0
+        for k in range(obs_lm.shape[0]):
+            i = obs_lm[k]
+            h = lm_host[i]
+            t = obs_tgt[k]
+            d = lm_d[i]
+            bearing_from_stereo_into(lm_s[i, 0], lm_s[i, 1], b, Jb)
+            if h == t:
+                for c in range(3):
+                    p[0, c] = b[c]
+                    p_lin[0, c] = b[c]
+                    J_l3[c, 0] = Jb[c, 0]
+                    J_l3[c, 1] = Jb[c, 1]
+                    J_l3[c, 2] = 0.0
+                    for c2 in range(6):
+                        J_h3[c, c2] = 0.0
+                        J_t3[c, c2] = 0.0
+            else:
+                _point_in_target(poses[h], poses[t], b, d, p, 0)
+                Th = poses_lin[h]
+                Tt = poses_lin[t]
+                _point_in_target(Th, Tt, b, d, p_lin, 0)
+                for c in range(3):
+                    rb[c] = Th[c, 0] * b[0] + Th[c, 1] * b[1] + Th[c, 2] * b[2]
+                    ql[c] = rb[c] + (Th[c, 3] - Tt[c, 3]) * d
+                for c in range(3):
+                    # row c of R_w_t^T is column c of R_w_t
+                    a0 = Tt[0, c]
+                    a1 = Tt[1, c]
+                    a2 = Tt[2, c]
+                    # landmark: dp/ds = R_t_h db/ds, dp/dd = t_t_h = R_w_t^T (t_w_h - t_w_t)
+                    for c2 in range(2):
+                        acc = 0.0
+                        for m in range(3):
+                            acc += (a0 * Th[0, m] + a1 * Th[1, m] + a2 * Th[2, m]) * Jb[m, c2]
+                        J_l3[c, c2] = acc
+                    if d == 0.0:
+                        # points at infinity stay there: no inverse-distance update (as the
+                        # reference)
+                        J_l3[c, 2] = 0.0
+                    else:
+                        J_l3[c, 2] = (a0 * (Th[0, 3] - Tt[0, 3]) + a1 * (Th[1, 3] - Tt[1, 3])
+                                      + a2 * (Th[2, 3] - Tt[2, 3]))
+                    J_h3[c, 0] = d * a0
+                    J_h3[c, 1] = d * a1
+                    J_h3[c, 2] = d * a2
+                    J_t3[c, 0] = -d * a0
+                    J_t3[c, 1] = -d * a1
+                    J_t3[c, 2] = -d * a2
+                    # a^T [x]_x = (a x x)^T = [a1 x2 - a2 x1, a2 x0 - a0 x2, a0 x1 - a1 x0]
+                    J_h3[c, 3] = -(a1 * rb[2] - a2 * rb[1])
+                    J_h3[c, 4] = -(a2 * rb[0] - a0 * rb[2])
+                    J_h3[c, 5] = -(a0 * rb[1] - a1 * rb[0])
+                    J_t3[c, 3] = a1 * ql[2] - a2 * ql[1]
+                    J_t3[c, 4] = a2 * ql[0] - a0 * ql[2]
+                    J_t3[c, 5] = a0 * ql[1] - a1 * ql[0]
+            ok = batch.project_point(model_id, kp, p_lin, 0, uv, J_pi, J_k, True)
+            if not same_lin:  # residual at the estimate, Jacobians at the linearisation point
+                ok = batch.project_point(model_id, kp, p, 0, uv_res, no_jp, no_jk,
+                                         False) and ok
+                uv[0, 0] = uv_res[0, 0]
+                uv[0, 1] = uv_res[0, 1]
+            valid[k] = ok
+            if not ok:
+                w[k] = 0.0
+                r[k, 0] = 0.0
+                r[k, 1] = 0.0
+                for a in range(2):
+                    for c in range(6):
+                        J_h[k, a, c] = 0.0
+                        J_t[k, a, c] = 0.0
+                    for c in range(3):
+                        J_l[k, a, c] = 0.0
+                continue
+            r0 = uv[0, 0] - obs_uv[k, 0]
+            r1 = uv[0, 1] - obs_uv[k, 1]
+            e = math.sqrt(r0 * r0 + r1 * r1)
+            hw = 1.0 if e < huber else huber / e
+            w0 = _obs_weight(obs_level[k], d, inv_var, inf_factor)
+            cost += (2.0 - hw) * hw * w0 * e * e
+            w[k] = hw * w0
+            r[k, 0] = r0
+            r[k, 1] = r1
             for a in range(2):
                 for c in range(6):
-                    J_h[k, a, c] = 0.0
-                    J_t[k, a, c] = 0.0
+                    sh = 0.0
+                    st = 0.0
+                    for m in range(3):
+                        sh += J_pi[0, a, m] * J_h3[m, c]
+                        st += J_pi[0, a, m] * J_t3[m, c]
+                    J_h[k, a, c] = sh
+                    J_t[k, a, c] = st
                 for c in range(3):
-                    J_l[k, a, c] = 0.0
-            continue
-        r0 = uv[k, 0] - obs_uv[k, 0]
-        r1 = uv[k, 1] - obs_uv[k, 1]
-        e = math.sqrt(r0 * r0 + r1 * r1)
-        hw = 1.0 if e < huber else huber / e
-        w0 = _obs_weight(obs_level[k], lm_d[obs_lm[k]], inv_var, inf_factor)
-        cost += (2.0 - hw) * hw * w0 * e * e
-        w[k] = hw * w0
-        r[k, 0] = r0
-        r[k, 1] = r1
-        for a in range(2):
-            for c in range(6):
-                sh = 0.0
-                st = 0.0
-                for m in range(3):
-                    sh += J_pi[k, a, m] * J_h3[k, m, c]
-                    st += J_pi[k, a, m] * J_t3[k, m, c]
-                J_h[k, a, c] = sh
-                J_t[k, a, c] = st
-            for c in range(3):
-                sl = 0.0
-                for m in range(3):
-                    sl += J_pi[k, a, m] * J_l3[k, m, c]
-                J_l[k, a, c] = sl
-    return cost
+                    sl = 0.0
+                    for m in range(3):
+                        sl += J_pi[0, a, m] * J_l3[m, c]
+                    J_l[k, a, c] = sl
+        return cost
+
+    return loop
+
+
+@numba.njit(cache=True, nogil=True)
+def linearize_fused(model: int, kp: np.ndarray, poses: np.ndarray, poses_lin: np.ndarray,
+                    same_lin: bool, lm_host, lm_s, lm_d, obs_lm, obs_tgt, obs_uv, obs_level,
+                    inv_var: float, huber: float, inf_factor: float, r, w, J_h, J_t, J_l,
+                    valid) -> float:
+    """Every observation transformed, projected and linearised in one pass.
+
+    Writes residuals ``r`` (N,2) at ``poses``, robust information weights ``w`` (N,) (0 for
+    invalid projections), pixel Jacobians w.r.t. the host twist, the target twist and the
+    landmark (N,2,6), (N,2,6), (N,2,3) at ``poses_lin`` (``same_lin``: the two are equal and
+    one projection per observation serves both), the validity ``valid`` (N,), and returns the
+    robust cost ``sum (2 - h) h w0 |r|^2`` (Huber: ``h = min(1, k/|r|)``, so ``w0 |r|^2``
+    inside and ``w0 (2 k |r| - k^2)`` outside the threshold ``k``). Invalid projections get
+    zero residuals and Jacobians. ``(model, kp)``: the camera's kernel id and parameters."""
+    if model == KB4:
+        return _linearize_fused(KB4, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d,
+                                obs_lm, obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor,
+                                r, w, J_h, J_t, J_l, valid)
+    if model == DS:
+        return _linearize_fused(DS, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d,
+                                obs_lm, obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor,
+                                r, w, J_h, J_t, J_l, valid)
+    return _linearize_fused(PINHOLE, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d,
+                            obs_lm, obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor,
+                            r, w, J_h, J_t, J_l, valid)
 
 
 @numba.njit(cache=True, nogil=True)
 def robust_cost(uv: np.ndarray, valid: np.ndarray, obs_uv: np.ndarray, obs_level: np.ndarray,
                 obs_lm: np.ndarray, lm_d: np.ndarray, inv_var: float, huber: float,
                 inf_factor: float) -> float:
-    """The robust reprojection cost of :func:`linearize_observations` without Jacobians."""
+    """The robust reprojection cost of :func:`linearize_fused` without Jacobians."""
     cost = 0.0
     for k in range(obs_lm.shape[0]):
         if not valid[k]:
@@ -235,14 +269,13 @@ def robust_cost(uv: np.ndarray, valid: np.ndarray, obs_uv: np.ndarray, obs_level
 
 
 class Workspace:
-    """Preallocated per-observation buffers, reused across iterations of one problem (large
-    temporary arrays would otherwise be page-faulted in on every iteration). ``view(n)`` gives
-    a workspace for ``n <= capacity`` observations on the same memory (the window keeps one
-    workspace for all its problems, so that the pages stay mapped across calls)."""
+    """Preallocated per-observation outputs of the linearisation, reused across iterations of
+    one problem (large temporary arrays would otherwise be page-faulted in on every
+    iteration). ``view(n)`` gives a workspace for ``n <= capacity`` observations on the same
+    memory (the window keeps one workspace for all its problems, so that the pages stay mapped
+    across calls)."""
 
-    _FIELDS = (("p", (3,)), ("p_lin", (3,)), ("J_h3", (3, 6)), ("J_t3", (3, 6)),
-               ("J_l3", (3, 3)), ("r", (2,)), ("w", ()), ("J_h", (2, 6)), ("J_t", (2, 6)),
-               ("J_l", (2, 3)))
+    _FIELDS = (("r", (2,)), ("w", ()), ("J_h", (2, 6)), ("J_t", (2, 6)), ("J_l", (2, 3)))
 
     def __init__(self, n: int):
         self.capacity = int(n)
@@ -282,26 +315,20 @@ def linearize(camera, packed: PackedObservations, poses: np.ndarray, poses_lin: 
     with pose Jacobians at ``poses_lin``. The returned arrays live in ``workspace`` (if given)
     and are overwritten by the next call with the same workspace."""
     ws = workspace if workspace is not None else Workspace(packed.num_observations)
-    transform_observations_into(poses, poses_lin, packed.lm_host, packed.lm_s, packed.lm_d,
-                                packed.obs_lm, packed.obs_tgt, True, ws.p, ws.p_lin, ws.J_h3,
-                                ws.J_t3, ws.J_l3)
-    uv, J_pi, _, valid = camera.project_jacobians(ws.p_lin)
-    if poses_lin is not poses and not np.array_equal(poses_lin, poses):
-        uv, valid_res = camera.project(ws.p)
-        valid = np.logical_and(valid, valid_res)
-    valid = np.ascontiguousarray(valid, dtype=np.bool_)
-    cost = linearize_observations_into(
-        np.ascontiguousarray(uv, dtype=np.float64), np.ascontiguousarray(J_pi, dtype=np.float64),
-        valid, ws.J_h3, ws.J_t3, ws.J_l3, packed.obs_uv, packed.obs_level, packed.obs_lm,
-        packed.lm_d, inv_var, huber, inf_factor, ws.r, ws.w, ws.J_h, ws.J_t, ws.J_l)
+    same_lin = poses_lin is poses or bool(np.array_equal(poses_lin, poses))
+    valid = np.empty(packed.num_observations, dtype=np.bool_)
+    cost = linearize_fused(camera.kernel_model, camera.kernel_params, poses, poses_lin,
+                           same_lin, packed.lm_host, packed.lm_s, packed.lm_d, packed.obs_lm,
+                           packed.obs_tgt, packed.obs_uv, packed.obs_level, inv_var, huber,
+                           inf_factor, ws.r, ws.w, ws.J_h, ws.J_t, ws.J_l, valid)
     return LinearizedObservations(ws.r, ws.w, ws.J_h, ws.J_t, ws.J_l, cost, valid)
 
 
 def reprojection_residuals(camera, packed: PackedObservations, poses: np.ndarray
                            ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals ``pi(p_t) - z`` (N,2) and validity (N,) at ``poses`` (no weighting)."""
-    p = transform_observations(poses, poses, packed.lm_host, packed.lm_s, packed.lm_d,
-                               packed.obs_lm, packed.obs_tgt, False)[0]
+    p = transform_observations(poses, packed.lm_host, packed.lm_s, packed.lm_d, packed.obs_lm,
+                               packed.obs_tgt)
     uv, valid = camera.project(p)
     return np.asarray(uv) - packed.obs_uv, np.asarray(valid, dtype=bool)
 
@@ -309,8 +336,8 @@ def reprojection_residuals(camera, packed: PackedObservations, poses: np.ndarray
 def reprojection_cost(camera, packed: PackedObservations, poses: np.ndarray, inv_var: float,
                       huber: float, inf_factor: float) -> float:
     """Robust reprojection cost at ``poses`` and the landmark states of ``packed``."""
-    p = transform_observations(poses, poses, packed.lm_host, packed.lm_s, packed.lm_d,
-                               packed.obs_lm, packed.obs_tgt, False)[0]
+    p = transform_observations(poses, packed.lm_host, packed.lm_s, packed.lm_d, packed.obs_lm,
+                               packed.obs_tgt)
     uv, valid = camera.project(p)
     return float(robust_cost(np.ascontiguousarray(uv, dtype=np.float64),
                              np.ascontiguousarray(valid, dtype=np.bool_), packed.obs_uv,

@@ -52,6 +52,11 @@ def _batch_unproject(model, kp, uv, want_jac):
     raise NotImplementedError
 
 
+def num_intrinsics(model: int) -> int:
+    """Number of intrinsics of a registered model (the width of ``d uv / d intrinsics``)."""
+    return _MODELS[model][2]
+
+
 def _constants(model, want_jac):
     """``(registered model entry, want_jac)`` when both arguments are compile-time constants
     (the loops are specialised on them), else None."""
@@ -60,34 +65,65 @@ def _constants(model, want_jac):
     return None
 
 
-@overload(_batch_project, prefer_literal=True, jit_options={"cache": True})
-def _batch_project_loop(model, kp, points, want_jac):
+def project_point(model, kp, points, i, uv, jp, jk, want_jac):
+    """Row ``i`` of :func:`project_points` into ``uv``, ``jp``, ``jk`` (njit only; ``model``
+    and ``want_jac`` compile-time constants): returns the validity, and on an invalid row
+    every output of row ``i`` is 0. For kernels that project point by point (the fused
+    linearisation of the backend) with exactly the batch loop's rule."""
+    raise NotImplementedError
+
+
+@overload(project_point, prefer_literal=True, jit_options={"cache": True})
+def _project_point_checked(model, kp, points, i, uv, jp, jk, want_jac):
     if (constants := _constants(model, want_jac)) is None:
         return None
     (project_one, _, nk, (check, _)), jac = constants
 
+    def one(model, kp, points, i, uv, jp, jk, want_jac):
+        if jac:  # the models write only the non-zero Jacobian entries
+            for a in range(2):
+                for c in range(3):
+                    jp[i, a, c] = 0.0
+                for c in range(nk):
+                    jk[i, a, c] = 0.0
+        ok = project_one(kp, points, i, uv, jp, jk, jac)
+        ok = ok and math.isfinite(uv[i, 0]) and math.isfinite(uv[i, 1])
+        if ok and jac and check:
+            for a in range(2):
+                for c in range(3):
+                    ok = ok and math.isfinite(jp[i, a, c])
+                for c in range(nk):
+                    ok = ok and math.isfinite(jk[i, a, c])
+        if not ok:
+            uv[i, 0] = 0.0
+            uv[i, 1] = 0.0
+            if jac:
+                for a in range(2):
+                    for c in range(3):
+                        jp[i, a, c] = 0.0
+                    for c in range(nk):
+                        jk[i, a, c] = 0.0
+        return ok
+
+    return one
+
+
+@overload(_batch_project, prefer_literal=True, jit_options={"cache": True})
+def _batch_project_loop(model, kp, points, want_jac):
+    if (constants := _constants(model, want_jac)) is None:
+        return None
+    (_, _, nk, _), jac = constants
+    model_id = model.literal_value
+
     def loop(model, kp, points, want_jac):
         n = points.shape[0]
         m = n if jac else 0
-        uv = np.zeros((n, 2))
-        jp = np.zeros((m, 2, 3))
-        jk = np.zeros((m, 2, nk))
-        valid = np.zeros(n, dtype=np.bool_)
+        uv = np.empty((n, 2))
+        jp = np.empty((m, 2, 3))
+        jk = np.empty((m, 2, nk))
+        valid = np.empty(n, dtype=np.bool_)
         for i in range(n):
-            ok = project_one(kp, points, i, uv, jp, jk, jac)
-            ok = ok and math.isfinite(uv[i, 0]) and math.isfinite(uv[i, 1])
-            if ok and jac and check:
-                for a in range(2):
-                    for c in range(3):
-                        ok = ok and math.isfinite(jp[i, a, c])
-                    for c in range(nk):
-                        ok = ok and math.isfinite(jk[i, a, c])
-            valid[i] = ok
-            if not ok:
-                uv[i, :] = 0.0
-                if jac:
-                    jp[i, :, :] = 0.0
-                    jk[i, :, :] = 0.0
+            valid[i] = project_point(model_id, kp, points, i, uv, jp, jk, jac)
         return uv, jp, jk, valid
 
     return loop
