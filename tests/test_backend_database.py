@@ -204,7 +204,7 @@ def test_no_motion_pairs_match_reference():
     problem = win.problem()
     pk = problem.packed
     k = len(problem.frame_ids)
-    for _ in range(2):  # second call uses the cached pair structure
+    for _ in range(2):  # half, then all of the landmarks at d = 0
         host = pk.lm_host[pk.obs_lm]
         linked: dict[tuple[int, int], bool] = {}
         for o in range(pk.num_observations):

@@ -355,6 +355,22 @@ def _projected_reference(K, lm_ptr, lm_host, obs_tgt, r, w, J_h, J_t, J_l, dampi
     return H, b
 
 
+def test_schur_reduce_without_rhs_gives_the_same_matrices():
+    _, win = _window("kb4", seed=3)
+    problem = win.problem()
+    pk = problem.packed
+    lin = linearize(win.camera, pk, problem.poses, problem.poses, 4.0, 1.0, 1.0)
+    args = (len(problem.frame_ids), pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.r, lin.w, lin.J_h,
+            lin.J_t, lin.J_l, 1e-9, 0.0)
+    full = schur_reduce(*args)
+    mats = schur_reduce(*args, False)
+    assert np.any(full[2] != 0.0) and np.any(full[3] != 0.0)
+    np.testing.assert_array_equal(mats[0], full[0])
+    np.testing.assert_array_equal(mats[2], full[2])
+    for rhs in (mats[1], mats[3], mats[4], mats[5]):
+        assert not np.any(rhs)
+
+
 @pytest.mark.parametrize("damping", [1e-9, 0.0])
 def test_schur_reduce_is_accurate_on_near_singular_landmark_blocks(damping):
     args = _ill_conditioned_landmarks(damping)

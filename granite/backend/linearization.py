@@ -48,25 +48,26 @@ class WindowCost:
     def no_motion_pairs(self, problem: WindowProblem) -> list[tuple[int, int]]:
         return problem.no_motion_pairs(self.config.no_motion_weight)
 
-    def linearize(self, problem: WindowProblem, lm_lambda: float = 0.0
+    def linearize(self, problem: WindowProblem, lm_lambda: float = 0.0, with_rhs: bool = True
                   ) -> tuple[LinearizedObservations, ReducedSystem]:
         """Observations linearised at the problem's states (first-estimate Jacobians at
         ``poses_lin``) and the Schur-reduced system with LM damping ``lm_lambda`` on the
-        landmark blocks."""
+        landmark blocks (``with_rhs=False``: the matrices only, see
+        :func:`granite.backend.schur.schur_reduce`)."""
         cfg = self.config
         pk = problem.packed
         inv_var = 1.0 / (cfg.obs_std_dev * cfg.obs_std_dev)
         lin = linearize(self.camera, pk, problem.poses, problem.poses_lin, inv_var,
                         cfg.huber_threshold, cfg.infinite_obs_factor, problem.workspace)
-        return lin, self.reduce(problem, lin, lm_lambda)
+        return lin, self.reduce(problem, lin, lm_lambda, with_rhs)
 
     def reduce(self, problem: WindowProblem, lin: LinearizedObservations,
-               lm_lambda: float) -> ReducedSystem:
+               lm_lambda: float, with_rhs: bool = True) -> ReducedSystem:
         """Landmark elimination of an existing linearisation (e.g. with another LM damping)."""
         pk = problem.packed
         return ReducedSystem(*schur_reduce(
             len(problem.frame_ids), pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.r, lin.w, lin.J_h,
-            lin.J_t, lin.J_l, self.config.landmark_damping, lm_lambda))
+            lin.J_t, lin.J_l, self.config.landmark_damping, lm_lambda, with_rhs))
 
     def prior_terms(self, problem: WindowProblem, pairs: list[tuple[int, int]],
                     include: set[int] | None = None):

@@ -10,6 +10,7 @@ copies them back with :meth:`granite.backend.SlidingWindow.write_back`.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from granite.backend.packing import PackedObservations
@@ -39,7 +40,6 @@ class WindowProblem:
         self.packed = packed
         self.in_prior = in_prior
         self.workspace = workspace
-        self._pair_keys: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def sync_lin(self) -> None:
         """Pose Jacobians of states not in the prior are evaluated at the current poses."""
@@ -77,17 +77,28 @@ class WindowProblem:
         if pk.num_observations == 0 or weight <= 0.0 or not np.any(pk.lm_d == 0.0):
             return []
         k = len(self.frame_ids)
-        if self._pair_keys is None:  # observation structure: fixed for the problem
-            host = pk.lm_host[pk.obs_lm]
-            tgt = pk.obs_tgt
-            sel = np.flatnonzero(host != tgt)
-            h, t = host[sel], tgt[sel]
-            keys = np.minimum(h, t) * k + np.maximum(h, t)
-            self._pair_keys = (keys, pk.obs_lm[sel], np.bincount(keys, minlength=k * k) > 0)
-        keys, obs_lm, linked = self._pair_keys
-        finite = pk.lm_d[obs_lm] > 0.0
-        no_motion = linked & ~(np.bincount(keys[finite], minlength=k * k) > 0)
-        return [(int(u // k), int(u % k)) for u in np.flatnonzero(no_motion).tolist()]
+        keys = _no_motion_keys(pk.lm_host, pk.lm_d, pk.obs_lm, pk.obs_tgt, k)
+        return [(int(u // k), int(u % k)) for u in keys.tolist()]
+
+
+@numba.njit(cache=True, nogil=True)
+def _no_motion_keys(lm_host: np.ndarray, lm_d: np.ndarray, obs_lm: np.ndarray,
+                    obs_tgt: np.ndarray, k: int) -> np.ndarray:
+    """Ascending keys ``min(h, t) * k + max(h, t)`` of the pose pairs linked by observations
+    outside the host, none of them of a landmark with ``d > 0``."""
+    linked = np.zeros(k * k, dtype=np.bool_)
+    finite = np.zeros(k * k, dtype=np.bool_)
+    for o in range(obs_lm.shape[0]):
+        i = obs_lm[o]
+        h = lm_host[i]
+        t = obs_tgt[o]
+        if h == t:
+            continue
+        key = min(h, t) * k + max(h, t)
+        linked[key] = True
+        if lm_d[i] > 0.0:
+            finite[key] = True
+    return np.flatnonzero(linked & ~finite)
 
 
 def pose_rows(index: dict[int, int], frame_ids) -> np.ndarray:

@@ -217,7 +217,7 @@ def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True) -> Ke
     cost = window.cost_terms()
     if not include_scale_fix:
         cost.scale_fix = None
-    _, red = cost.linearize(problem)
+    _, red = cost.linearize(problem, with_rhs=False)  # the information matrix only
     H_red = red.H
     (H_p, _, _), (H_s, _, _), (H_n, _, _) = cost.prior_terms(problem,
                                                              cost.no_motion_pairs(problem))

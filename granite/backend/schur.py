@@ -15,26 +15,27 @@ import scipy.linalg
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, Jb: np.ndarray, k: int) -> None:
-    """``Hb[i, j] += wJa^T Jb[k]`` for 2x6 Jacobians (block layout (K,K,6,6)). Inlined into
-    :func:`schur_reduce` (LLVM left it a call: 5 % of that kernel)."""
+def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, b0, b1) -> None:
+    """``Hb[i, j] += wJa^T Jb`` for 2x6 Jacobians (block layout (K,K,6,6)), the rows of ``Jb``
+    given as 6-tuples ``b0``, ``b1`` (see :func:`_row6`). Inlined into :func:`schur_reduce`
+    (LLVM left it a call: 5 % of that kernel)."""
     for c1 in range(6):
         a0 = wJa[0, c1]
         a1 = wJa[1, c1]
         for c2 in range(6):
-            Hb[i, j, c1, c2] += a0 * Jb[k, 0, c2] + a1 * Jb[k, 1, c2]
+            Hb[i, j, c1, c2] += a0 * b0[c2] + a1 * b1[c2]
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _add_jtwj_lower(Hb: np.ndarray, i: int, wJa: np.ndarray, Jb: np.ndarray, k: int) -> None:
-    """The entries ``c2 <= c1`` of ``Hb[i, i] += wJa^T Jb[k]``: the only entries of a diagonal
-    block that :func:`schur_reduce` assembles into ``H`` (its mirror loop writes the lower
-    triangle last)."""
+def _add_jtwj_lower(Hb: np.ndarray, i: int, wJa: np.ndarray, b0, b1) -> None:
+    """The entries ``c2 <= c1`` of ``Hb[i, i] += wJa^T Jb`` (rows ``b0``, ``b1``): the only
+    entries of a diagonal block that :func:`schur_reduce` assembles into ``H`` (its mirror
+    loop writes the lower triangle last)."""
     for c1 in range(6):
         a0 = wJa[0, c1]
         a1 = wJa[1, c1]
         for c2 in range(c1 + 1):
-            Hb[i, i, c1, c2] += a0 * Jb[k, 0, c2] + a1 * Jb[k, 1, c2]
+            Hb[i, i, c1, c2] += a0 * b0[c2] + a1 * b1[c2]
 
 
 #: A landmark column whose part orthogonal to the previous columns (thin QR of the
@@ -46,12 +47,12 @@ DEPENDENT_COLUMN_REL = 1e-12
 
 @numba.njit(cache=True, nogil=True)
 def _landmark_qr(Al: np.ndarray, nr: int, Q: np.ndarray, Hll_inv: np.ndarray,
-                 R: np.ndarray, Rinv: np.ndarray, cols: np.ndarray) -> int:
+                 R: np.ndarray, Rinv: np.ndarray, cols: np.ndarray, with_inverse: bool) -> int:
     """Thin QR of the weighted landmark Jacobian ``Al[:nr]`` (nr x 3, damping rows included)
     by classical Gram-Schmidt with one re-orthogonalisation pass (CGS2: orthonormal to
     round-off whatever the conditioning). Writes ``Q[:nr, :3]``, an orthonormal basis of the
-    column space in its first ``rank`` columns (the others zero), and ``Hll_inv`` =
-    ``(Al^T Al)^-1`` computed as ``R^-1 R^-T`` on the independent columns (zero rows and
+    column space in its first ``rank`` columns (the others zero), and (``with_inverse``)
+    ``Hll_inv`` = ``(Al^T Al)^-1`` computed as ``R^-1 R^-T`` on the independent columns (zero rows and
     columns for a dependent one, see :data:`DEPENDENT_COLUMN_REL`). Returns the rank.
     ``R``, ``Rinv`` (3,3) and ``cols`` (3,) are workspaces."""
     for c in range(3):
@@ -92,6 +93,8 @@ def _landmark_qr(Al: np.ndarray, nr: int, Q: np.ndarray, Hll_inv: np.ndarray,
         cols[p] = j
         p += 1
     rank = p
+    if not with_inverse:
+        return rank
     # Rinv = R^-1 (upper triangular), Hll_inv = Rinv Rinv^T scattered onto the columns
     Rinv[:, :] = 0.0
     for c in range(rank - 1, -1, -1):
@@ -113,16 +116,27 @@ def _landmark_qr(Al: np.ndarray, nr: int, Q: np.ndarray, Hll_inv: np.ndarray,
     return rank
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _row6(A, i, q):
+    """``A[i, q, :6]`` as a tuple of values. Read this way, LLVM keeps them in registers: a
+    store into another array cannot alias them, so the accumulation loops that read them need
+    no reloads and vectorise (``schur_reduce`` 1.45 -> 1.21 ms on captured spiral windows,
+    the same bits)."""
+    return (A[i, q, 0], A[i, q, 1], A[i, q, 2], A[i, q, 3], A[i, q, 4], A[i, q, 5])
+
+
 @numba.njit(cache=True, nogil=True)
 def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tgt: np.ndarray,
                  r: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_t: np.ndarray,
-                 J_l: np.ndarray, damping: float, lm_lambda: float):
+                 J_l: np.ndarray, damping: float, lm_lambda: float, with_rhs: bool = True):
     """Accumulate the normal equations of all observations and eliminate the landmarks.
 
     Returns ``(H_raw, b_raw, H_red, b_red, Hll_inv, b_l)``: the pose-pose block and pose
     gradient before elimination (6K,6K), (6K,), the reduced camera system after it, the
     inverses of the (damped) landmark blocks (M,3,3) and the landmark gradients (M,3).
     ``damping + lm_lambda * diag`` is added to each landmark block before inversion.
+    ``with_rhs=False``: only the matrices (``H_raw``, ``H_red``) are computed; the gradients
+    and ``Hll_inv`` are returned as zeros (what Λ_scaledrift needs, 13 % less work).
 
     Elimination by orthogonal projection, not by inverting the 3x3 normal block: per landmark
     the weighted Jacobian rows ``[A_p | A_l]`` (``sqrt(w)`` times the 2x6 / 2x3 blocks, plus
@@ -182,7 +196,8 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
             sqw[no] = sk
             no += 1
             for c1 in range(3):
-                bli[c1] += wk * (J_l[k, 0, c1] * r[k, 0] + J_l[k, 1, c1] * r[k, 1])
+                if with_rhs:
+                    bli[c1] += wk * (J_l[k, 0, c1] * r[k, 0] + J_l[k, 1, c1] * r[k, 1])
                 diag[c1] += wk * (J_l[k, 0, c1] * J_l[k, 0, c1] + J_l[k, 1, c1] * J_l[k, 1, c1])
             t = obs_tgt[k]
             if t == h:
@@ -195,28 +210,34 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
                 slot[t] = ns
                 slot_pose[ns] = t
                 ns += 1
-            for a in range(2):
-                for c in range(6):
-                    wJh[a, c] = wk * J_h[k, a, c]
-                    wJt[a, c] = wk * J_t[k, a, c]
+            h0 = _row6(J_h, k, 0)
+            h1 = _row6(J_h, k, 1)
+            t0 = _row6(J_t, k, 0)
+            t1 = _row6(J_t, k, 1)
+            for c in range(6):
+                wJh[0, c] = wk * h0[c]
+                wJh[1, c] = wk * h1[c]
+                wJt[0, c] = wk * t0[c]
+                wJt[1, c] = wk * t1[c]
             oh = 6 * h
             ot = 6 * t
-            for c1 in range(6):
-                b[oh + c1] += wJh[0, c1] * r[k, 0] + wJh[1, c1] * r[k, 1]
-                b[ot + c1] += wJt[0, c1] * r[k, 0] + wJt[1, c1] * r[k, 1]
-            _add_jtwj_lower(Hb, h, wJh, J_h, k)
-            _add_jtwj_lower(Hb, t, wJt, J_t, k)
+            if with_rhs:
+                for c1 in range(6):
+                    b[oh + c1] += wJh[0, c1] * r[k, 0] + wJh[1, c1] * r[k, 1]
+                    b[ot + c1] += wJt[0, c1] * r[k, 0] + wJt[1, c1] * r[k, 1]
+            _add_jtwj_lower(Hb, h, wJh, h0, h1)
+            _add_jtwj_lower(Hb, t, wJt, t0, t1)
             if h < t:
-                _add_jtwj(Hb, h, t, wJh, J_t, k)
+                _add_jtwj(Hb, h, t, wJh, t0, t1)
             else:
-                _add_jtwj(Hb, t, h, wJt, J_h, k)
+                _add_jtwj(Hb, t, h, wJt, h0, h1)
         b_l[i, :] = bli
         nr = 2 * no + 3
         for c in range(3):
             for c2 in range(3):
                 Al[2 * no + c, c2] = 0.0
             Al[2 * no + c, c] = np.sqrt(damping + lm_lambda * diag[c])
-        rank = _landmark_qr(Al, nr, Q, inv, qr_R, qr_Rinv, qr_cols)
+        rank = _landmark_qr(Al, nr, Q, inv, qr_R, qr_Rinv, qr_cols, with_rhs)
         Hll_inv[i, :, :] = inv
         if ns == 0 or rank == 0:
             for a in range(ns):
@@ -235,16 +256,21 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
             sk = sqw[o]
             t = obs_tgt[k]
             st = slot[t]
+            h0 = _row6(J_h, k, 0)
+            h1 = _row6(J_h, k, 1)
+            t0 = _row6(J_t, k, 0)
+            t1 = _row6(J_t, k, 1)
             for q in range(3):
                 q0 = Q[2 * o, q] * sk
                 q1 = Q[2 * o + 1, q] * sk
-                qr_[q] += q0 * r[k, 0] + q1 * r[k, 1]
+                if with_rhs:
+                    qr_[q] += q0 * r[k, 0] + q1 * r[k, 1]
                 if t == h:
                     continue
                 for c in range(6):
-                    G[sh, q, c] += q0 * J_h[k, 0, c] + q1 * J_h[k, 1, c]
-                    G[st, q, c] += q0 * J_t[k, 0, c] + q1 * J_t[k, 1, c]
-        for a in range(ns):
+                    G[sh, q, c] += q0 * h0[c] + q1 * h1[c]
+                    G[st, q, c] += q0 * t0[c] + q1 * t1[c]
+        for a in range(ns if with_rhs else 0):
             oa = 6 * slot_pose[a]
             for c1 in range(6):
                 sb[oa + c1] += G[a, 0, c1] * qr_[0] + G[a, 1, c1] * qr_[1] + G[a, 2, c1] * qr_[2]
@@ -254,6 +280,9 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
                 pc = slot_pose[c]
                 if pa > pc:
                     continue
+                g0 = _row6(G, c, 0)
+                g1 = _row6(G, c, 1)
+                g2 = _row6(G, c, 2)
                 if pa == pc:
                     # G_a^T G_a: entries (c1, c2) and (c2, c1) are the same products summed in
                     # the same order, so bit for bit equal: only c2 >= c1 is accumulated (the
@@ -263,14 +292,14 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
                         x1 = G[a, 1, c1]
                         x2 = G[a, 2, c1]
                         for c2 in range(c1, 6):
-                            Sb[pa, pa, c1, c2] += x0 * G[a, 0, c2] + x1 * G[a, 1, c2] + x2 * G[a, 2, c2]
+                            Sb[pa, pa, c1, c2] += x0 * g0[c2] + x1 * g1[c2] + x2 * g2[c2]
                     continue
                 for c1 in range(6):
                     x0 = G[a, 0, c1]
                     x1 = G[a, 1, c1]
                     x2 = G[a, 2, c1]
                     for c2 in range(6):
-                        Sb[pa, pc, c1, c2] += x0 * G[c, 0, c2] + x1 * G[c, 1, c2] + x2 * G[c, 2, c2]
+                        Sb[pa, pc, c1, c2] += x0 * g0[c2] + x1 * g1[c2] + x2 * g2[c2]
         for a in range(ns):
             slot[slot_pose[a]] = -1
     H = np.empty((n6, n6))
