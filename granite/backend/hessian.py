@@ -66,20 +66,29 @@ def information_schur_complement(H: np.ndarray, keep: np.ndarray, marg: np.ndarr
     by a Jacobi-scaled Cholesky factorisation of ``H_mm`` (a tenth of the eigen-decomposition's
     cost); :func:`marginalize_dense` (generalised inverse) when ``H_mm`` is singular or nearly
     so."""
-    H_mm = H[np.ix_(marg, marg)]
+    marg = np.asarray(marg, dtype=np.int64)
+    order = np.concatenate([marg, np.asarray(keep, dtype=np.int64)])
+    return schur_complement_of_leading(H[np.ix_(order, order)], marg.size)
+
+
+def schur_complement_of_leading(H: np.ndarray, m: int) -> np.ndarray:
+    """:func:`information_schur_complement` marginalising the first ``m`` rows and columns
+    of ``H`` (slices, no index arrays)."""
+    H_mm = H[:m, :m]
     d = np.diag(H_mm)
-    if marg.size and np.all(d > 0.0):
+    if m and np.all(d > 0.0):
         sc = 1.0 / np.sqrt(d)
         try:
             L = np.linalg.cholesky(H_mm * sc[:, None] * sc[None, :])
         except np.linalg.LinAlgError:
             L = None
         if L is not None and np.min(np.diag(L)) ** 2 > _CHOLESKY_MIN_PIVOT2:
-            X = scipy.linalg.solve_triangular(L, sc[:, None] * H[np.ix_(marg, keep)],
-                                              lower=True, check_finite=False)
-            out = H[np.ix_(keep, keep)] - X.T @ X
+            X = scipy.linalg.solve_triangular(L, sc[:, None] * H[:m, m:], lower=True,
+                                              check_finite=False)
+            out = H[m:, m:] - X.T @ X
             return 0.5 * (out + out.T)
-    return marginalize_dense(H, np.zeros(H.shape[0]), keep, marg)[0]
+    n = H.shape[0]
+    return marginalize_dense(H, np.zeros(n), np.arange(m, n), np.arange(m))[0]
 
 
 def marginal_information(H: np.ndarray, idx: np.ndarray) -> np.ndarray:

@@ -70,10 +70,10 @@ class WindowCost:
             lin.J_t, lin.J_l, self.config.landmark_damping, lm_lambda, with_rhs))
 
     def prior_terms(self, problem: WindowProblem, pairs: list[tuple[int, int]],
-                    include: set[int] | None = None):
+                    include: set[int] | None = None, with_rhs: bool = True):
         """See :func:`granite.backend.priors.pose_prior_terms`."""
         return pose_prior_terms(problem, self.prior, self.scale_fix, pairs,
-                                self.config.no_motion_weight, include)
+                                self.config.no_motion_weight, include, with_rhs)
 
     def system(self, problem: WindowProblem, lin: LinearizedObservations, red: ReducedSystem,
                pairs: list[tuple[int, int]]) -> WindowHessian:

@@ -110,12 +110,14 @@ def no_motion_terms(T_w_h: np.ndarray, T_w_t: np.ndarray, weight: float
 
 def pose_prior_terms(problem, prior: MargPrior, scale_fix: ScaleFix | None,
                      pairs: list[tuple[int, int]], no_motion_weight: float,
-                     include: set[int] | None = None):
+                     include: set[int] | None = None, with_rhs: bool = True):
     """Dense marginalisation-prior, scale-fix and no-motion terms over a
     :class:`~granite.backend.problem.WindowProblem`'s poses: three ``(H, b, cost)`` of size
     6K. ``pairs`` are the problem's no-motion pose-index pairs. With ``include`` only scale-fix
     and no-motion terms touching those frame ids are added (marginalisation); the prior is
-    always added (the new prior replaces it and must keep its information, e.g. the gauge)."""
+    always added (the new prior replaces it and must keep its information, e.g. the gauge).
+    ``with_rhs=False``: the prior's gradient and cost are left at 0 (its Hessian does not
+    depend on the estimate; the scale fix and no-motion terms are complete either way)."""
     n6 = 6 * len(problem.frame_ids)
     idx = problem.index
     poses = {f: problem.poses[i] for f, i in idx.items()}
@@ -123,7 +125,10 @@ def pose_prior_terms(problem, prior: MargPrior, scale_fix: ScaleFix | None,
     b_p = np.zeros(n6)
     cost_p = 0.0
     if prior.frame_ids:
-        Hm, bm, cost_p = prior.linearize(poses)
+        if with_rhs:
+            Hm, bm, cost_p = prior.linearize(poses)
+        else:
+            Hm, bm = prior.H, np.zeros(prior.H.shape[0])
         _scatter(H_p, b_p, pose_rows(idx, prior.frame_ids), Hm, bm)
     H_s = np.zeros((n6, n6))
     b_s = np.zeros(n6)

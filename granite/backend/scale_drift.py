@@ -1,4 +1,4 @@
-"""Scale-drift indicator Λ_scaledrift (paper Sec. V, Eq. 11-17), pure numpy.
+"""Scale-drift indicator Λ_scaledrift (paper Sec. V, Eq. 11-17), numpy (the chain Jacobian in numba).
 
 Conventions: poses ``T_w_c`` (camera into world); every pose increment is the decoupled left
 increment of paper Eq. 14, twist ``[v, w]`` (translation first): ``R <- exp([w]x) R``,
@@ -38,6 +38,7 @@ import dataclasses
 import math
 from typing import TYPE_CHECKING
 
+import numba
 import numpy as np
 
 from granite.backend.hessian import information_schur_complement, marginalize_dense
@@ -107,38 +108,47 @@ class ScaleDriftResult:
 def relative_poses(poses: np.ndarray) -> np.ndarray:
     """``S_k = T_k^-1 T_{k+1}`` (n-1, 4, 4) of absolute poses ``T_w_c`` (n, 4, 4)."""
     R, t = poses[:, :3, :3], poses[:, :3, 3]
+    Rt = R[:-1].transpose(0, 2, 1)
     S = np.tile(np.eye(4), (len(poses) - 1, 1, 1))
-    S[:, :3, :3] = np.einsum("kji,kjl->kil", R[:-1], R[1:])
-    S[:, :3, 3] = np.einsum("kji,kj->ki", R[:-1], t[1:] - t[:-1])
+    S[:, :3, :3] = Rt @ R[1:]
+    S[:, :3, 3] = (Rt @ (t[1:] - t[:-1])[:, :, None])[:, :, 0]
     return S
 
 
-def _skew(a: np.ndarray) -> np.ndarray:
-    """``[a]x`` of vectors (..., 3) -> (..., 3, 3)."""
-    out = np.zeros(a.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -a[..., 2], a[..., 1], -a[..., 0]
-    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = a[..., 2], -a[..., 1], a[..., 0]
-    return out
-
-
+@numba.njit(cache=True, nogil=True)
 def chain_jacobian(poses: np.ndarray) -> np.ndarray:
     """``J = d xi_abs / d [xi_0, eta_0, .., eta_{n-2}]`` (6n, 6n) at absolute poses (n, 4, 4):
     block row ``j`` is keyframe ``j``'s decoupled twist, block column 0 the oldest keyframe's
     twist, column ``k+1`` the decoupled twist of ``S_k`` (see the module docstring)."""
-    n = len(poses)
-    R, t = poses[:, :3, :3], poses[:, :3, 3]
-    S = _skew(t[:, None, :] - t[None, :, :])  # [t_j - t_m]x, (n, n, 3, 3)
-    B = np.zeros((n, n, 6, 6))
-    eye = np.eye(3)
-    B[:, 0, :3, :3] = eye
-    B[:, 0, 3:, 3:] = eye
-    B[:, 0, :3, 3:] = -S[:, 0]
-    below = (np.arange(n)[:, None] >= np.arange(1, n)[None, :])[..., None, None]  # j > k
-    Rk = R[:-1][None]  # column k + 1 holds R_k
-    B[:, 1:, :3, :3] = Rk * below
-    B[:, 1:, 3:, 3:] = Rk * below
-    B[:, 1:, :3, 3:] = -np.einsum("jcab,cbd->jcad", S[:, 1:], R[:-1]) * below
-    return B.transpose(0, 2, 1, 3).reshape(6 * n, 6 * n)
+    n = poses.shape[0]
+    J = np.zeros((6 * n, 6 * n))
+    d = np.empty(3)
+    for j in range(n):
+        r = 6 * j
+        for a in range(6):
+            J[r + a, a] = 1.0
+        for a in range(3):
+            d[a] = poses[j, a, 3] - poses[0, a, 3]
+        # -[d]x into the rows of v_j, columns of w_0
+        J[r, 4], J[r, 5] = d[2], -d[1]
+        J[r + 1, 3], J[r + 1, 5] = -d[2], d[0]
+        J[r + 2, 3], J[r + 2, 4] = d[1], -d[0]
+        for k in range(j):
+            c = 6 * (k + 1)
+            for a in range(3):
+                d[a] = poses[j, a, 3] - poses[k + 1, a, 3]
+            for a in range(3):
+                for b in range(3):
+                    R_ab = poses[k, a, b]
+                    J[r + a, c + b] = R_ab
+                    J[r + 3 + a, c + 3 + b] = R_ab
+            # -[d]x R_k: row a of [d]x is (d x e_a)^T, i.e. [d]x R = d x (columns of R)
+            for b in range(3):
+                x, y, z = poses[k, 0, b], poses[k, 1, b], poses[k, 2, b]
+                J[r, c + 3 + b] = -(d[1] * z - d[2] * y)
+                J[r + 1, c + 3 + b] = -(d[2] * x - d[0] * z)
+                J[r + 2, c + 3 + b] = -(d[0] * y - d[1] * x)
+    return J
 
 
 def chain_jacobian_inverse(poses: np.ndarray) -> np.ndarray:
@@ -219,8 +229,8 @@ def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True) -> Ke
         cost.scale_fix = None
     _, red = cost.linearize(problem, with_rhs=False)  # the information matrix only
     H_red = red.H
-    (H_p, _, _), (H_s, _, _), (H_n, _, _) = cost.prior_terms(problem,
-                                                             cost.no_motion_pairs(problem))
+    (H_p, _, _), (H_s, _, _), (H_n, _, _) = cost.prior_terms(
+        problem, cost.no_motion_pairs(problem), with_rhs=False)
     idx = [problem.index[f] for f in kfs]
     is_kf = np.zeros((len(problem.frame_ids), 6), dtype=bool)
     is_kf[idx] = True
