@@ -14,7 +14,9 @@ is finite, an unprojection when the model accepts the pixel; models registered w
 The loop is written once, as numba overloads specialised per model at compile time (a kernel
 passed as an argument could not be cached, and a shared helper taking arrays is not inlined),
 so it runs about as fast as a loop written for the model. :func:`project_points` and
-:func:`unproject_pixels` are the entry points, from Python or njit code.
+:func:`unproject_pixels` are the entry points, from Python or njit code;
+:func:`project_point` projects one row with the same rule from njit code that loops over
+points itself (the backend's fused linearisation).
 """
 
 from __future__ import annotations
