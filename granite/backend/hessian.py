@@ -66,14 +66,9 @@ def information_schur_complement(H: np.ndarray, keep: np.ndarray, marg: np.ndarr
     by a Jacobi-scaled Cholesky factorisation of ``H_mm`` (a tenth of the eigen-decomposition's
     cost); :func:`marginalize_dense` (generalised inverse) when ``H_mm`` is singular or nearly
     so."""
-    marg = np.asarray(marg, dtype=np.int64)
-    order = np.concatenate([marg, np.asarray(keep, dtype=np.int64)])
-    return schur_complement_of_leading(H[np.ix_(order, order)], marg.size)
-
-
-def schur_complement_of_leading(H: np.ndarray, m: int) -> np.ndarray:
-    """:func:`information_schur_complement` marginalising the first ``m`` rows and columns
-    of ``H`` (slices, no index arrays)."""
+    m = len(marg)
+    order = np.concatenate([np.asarray(marg, dtype=np.int64), np.asarray(keep, dtype=np.int64)])
+    H = H[np.ix_(order, order)]  # the marginalised variables first: slices below
     H_mm = H[:m, :m]
     d = np.diag(H_mm)
     if m and np.all(d > 0.0):

@@ -1,4 +1,5 @@
-"""Scale-drift indicator Λ_scaledrift (paper Sec. V, Eq. 11-17), numpy (the chain Jacobian in numba).
+"""Scale-drift indicator Λ_scaledrift (paper Sec. V, Eq. 11-17): numpy, the chain Jacobian in
+numba.
 
 Conventions: poses ``T_w_c`` (camera into world); every pose increment is the decoupled left
 increment of paper Eq. 14, twist ``[v, w]`` (translation first): ``R <- exp([w]x) R``,
