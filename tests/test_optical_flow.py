@@ -16,7 +16,13 @@ from granite.optical_flow import (
     OpticalFlowConfig,
     build_pyramid,
 )
-from granite.optical_flow.detection import cell_layout, detect_in_cells, detect_new_points
+from granite.optical_flow.detection import (
+    _mark_occupied,
+    cell_layout,
+    detect_in_cells,
+    detect_new_points,
+    occupied_cells,
+)
 from granite.optical_flow.patch import interp, interp_grad, make_template
 from granite.optical_flow.patterns import pattern52, pattern52_raw
 from granite.optical_flow.synthetic import apply_affine, similarity, textured_image, warp
@@ -328,6 +334,29 @@ def test_detection_grid_border_and_levels(texture):
             assert not cells & set(_cell_of(pts[lvls == other], lvl, w, h, cfg.grid_size))
     # 640x480 level 0 has 16 x 12 cells, all textured.
     assert np.sum(lvls == 0) == 16 * 12
+
+
+def test_occupancy_kernel_matches_the_array_computation():
+    """The detection's numba occupancy pass marks exactly the cells :func:`occupied_cells`
+    finds for the points within one level, including points on cell edges, outside the grid
+    and not finite."""
+    rng = np.random.default_rng(3)
+    grid = 40
+    pts = np.concatenate([
+        rng.uniform(-30.0, 680.0, (400, 2)),
+        np.array([[40.0 * k, 20.0 * k] for k in range(17)]),  # on cell edges at level 0
+        np.array([[np.nan, 10.0], [np.inf, 5.0], [100.0, -np.inf]]),
+    ])
+    lvls = rng.integers(0, 6, len(pts))
+    for lvl in range(4):  # level 4 of 640x480 has no full 40 px cell row
+        w, h = (W + (1 << lvl) - 1) >> lvl, (H + (1 << lvl) - 1) >> lvl
+        x0, y0, nc, nr = cell_layout(w, h, grid)
+        near = (np.abs(lvls - lvl) <= 1) & np.isfinite(pts).all(axis=1)
+        expected = occupied_cells(pts[near] / float(1 << lvl), w, h, grid)
+        got = np.zeros((nr, nc), dtype=bool)
+        _mark_occupied(got, pts, lvls, lvl, x0, y0, grid)
+        assert got.any() and (lvl > 0 or not got.all())
+        np.testing.assert_array_equal(got, expected)
 
 
 def test_ablation_detects_on_the_finest_level_only(texture):

@@ -12,8 +12,11 @@ corners on cell edges are found as on the whole image.
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
+from numba import njit
 
 from granite.optical_flow.config import OpticalFlowConfig
 from granite.optical_flow.pyramid import ImagePyramid
@@ -97,42 +100,65 @@ def _strongest_corner(roi: np.ndarray, detectors) -> tuple[float, float] | None:
     return None
 
 
+@njit(cache=True, nogil=True)
+def _mark_occupied(occupied, points, levels, level, x_start, y_start, grid_size) -> None:
+    """``occupied[row, col] = True`` for the cells of a level's grid holding one of ``points``
+    (N, 2) (level-0 pixels) created within one level of ``level``: :func:`occupied_cells` of
+    ``points[near] / 2**level``, with the same floating-point operations, without the
+    temporaries (the detection runs between two frames' tracking, on the critical path)."""
+    nr, nc = occupied.shape
+    scale = float(1 << level)
+    for k in range(points.shape[0]):
+        if abs(levels[k] - level) > 1:
+            continue
+        fx = (points[k, 0] / scale - x_start) / grid_size
+        fy = (points[k, 1] / scale - y_start) / grid_size
+        if not (math.isfinite(fx) and math.isfinite(fy)):
+            continue
+        col = math.floor(fx)
+        row = math.floor(fy)
+        if 0 <= col < nc and 0 <= row < nr:
+            occupied[row, col] = True
+
+
 def detect_new_points(
     pyramid: ImagePyramid,
     config: OpticalFlowConfig,
     points: np.ndarray,
     levels: np.ndarray,
+    images_u8: dict[int, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """New corners on the configured levels given the current points.
 
     Args:
         points: (N, 2) level-0 positions of the tracked points; levels: (N,) creation levels.
+        images_u8: the levels as 8-bit images (:meth:`ImagePyramid.level_uint8`) when made
+            already (e.g. ahead of time with the pyramid); made here otherwise.
     Returns:
         (positions (M, 2) float64 level-0 pixels, levels (M,) int64). Levels are processed
         from fine to coarse; corners found on one level count as occupants for the next.
     """
-    all_pts = [np.asarray(points, dtype=np.float64).reshape(-1, 2)]
-    all_lvls = [np.asarray(levels, dtype=np.int64).reshape(-1)]
+    occupants = [(np.asarray(points, dtype=np.float64).reshape(-1, 2),
+                  np.asarray(levels, dtype=np.int64).reshape(-1))]
     new_pts: list[np.ndarray] = []
     new_lvls: list[np.ndarray] = []
     for lvl in config.detection_levels:
         if lvl >= pyramid.num_levels:
             break
         w, h = int(pyramid.widths[lvl]), int(pyramid.heights[lvl])
-        pts = np.concatenate(all_pts)
-        lv = np.concatenate(all_lvls)
-        near = np.abs(lv - lvl) <= 1
-        scale = float(1 << lvl)
-        occupied = occupied_cells(pts[near] / scale, w, h, config.grid_size)
+        x0, y0, nc, nr = cell_layout(w, h, config.grid_size)
+        occupied = np.zeros((nr, nc), dtype=bool)
+        for pts, lv in occupants:
+            _mark_occupied(occupied, pts, lv, lvl, x0, y0, config.grid_size)
         if occupied.size == 0 or occupied.all():
             continue
-        found = detect_in_cells(pyramid.level_uint8(lvl), occupied, config) * scale
+        image = images_u8[lvl] if images_u8 is not None and lvl in images_u8 else pyramid.level_uint8(lvl)
+        found = detect_in_cells(image, occupied, config) * float(1 << lvl)
         if len(found):
             lv_found = np.full(len(found), lvl, dtype=np.int64)
             new_pts.append(found)
             new_lvls.append(lv_found)
-            all_pts.append(found)
-            all_lvls.append(lv_found)
+            occupants.append((found, lv_found))
     if not new_pts:
         return np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
     return np.concatenate(new_pts), np.concatenate(new_lvls)

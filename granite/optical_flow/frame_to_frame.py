@@ -79,6 +79,9 @@ class PreparedImage:
     rejected: str | None
     blank: bool
     ms: float
+    #: the detection levels as 8-bit images (:meth:`ImagePyramid.level_uint8`), made ahead of
+    #: time with the pyramid (off the critical path between two frames' tracking)
+    images_u8: dict[int, np.ndarray] | None = None
 
 
 class FlowJob:
@@ -126,7 +129,8 @@ class FlowJob:
                 ids, points, levels, angles = ids[:0], points[:0], levels[:0], angles[:0]
                 self.rows = np.zeros(0, dtype=np.int64)
             t2 = time.perf_counter()
-            det_points, det_levels = detect_new_points(self.prepared.pyramid, self.config, points, levels)
+            det_points, det_levels = detect_new_points(self.prepared.pyramid, self.config, points, levels,
+                                                       self.prepared.images_u8)
             t3 = time.perf_counter()
             self.output = (ids, points, levels, angles, det_points, det_levels)
             self.timing = {"tracking": 1e3 * (t2 - t1), "detection": 1e3 * (t3 - t2)}
@@ -206,7 +210,10 @@ class FrameToFrameOpticalFlow:
         cfg = self.config
         pyramid = build_pyramid(image, cfg.levels, cfg.presmooth_sigma)
         noise = estimate_noise(image, stride=4) if self._needs_noise else 0.0
-        return PreparedImage(image, pyramid, noise, None, False, 1e3 * (time.perf_counter() - t0))
+        images_u8 = {lvl: pyramid.level_uint8(lvl) for lvl in cfg.detection_levels
+                     if lvl < pyramid.num_levels}
+        return PreparedImage(image, pyramid, noise, None, False, 1e3 * (time.perf_counter() - t0),
+                             images_u8)
 
     def process(
         self,
