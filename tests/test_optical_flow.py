@@ -539,3 +539,56 @@ def test_crowded_cells_keep_their_oldest_tracks():
         oldest = sorted(members, key=lambda k: ids[k])[:2]
         assert set(np.flatnonzero(keep[members]).tolist()) == {members.index(k) for k in oldest}
     assert keep.sum() == sum(min(2, len(m)) for m in cells.values())
+
+
+def test_coarse_levels_use_the_coarse_pattern_and_the_creation_level_the_fine_one(texture):
+    """With ``pattern_coarse`` the templates the backward pass leaves for the next frame are,
+    on every level above a point's creation level, the coarse pattern's template at the new
+    position (made here independently with :func:`make_template`), and on the creation level
+    the fine pattern's; the tracks still follow the exact motion."""
+    from granite.optical_flow.patterns import make_pattern
+
+    cfg = OpticalFlowConfig()
+    fine, coarse = make_pattern("grid11", 0.75), make_pattern("grid7", 0.75)
+    affine = similarity(7.3, -4.1, np.radians(2), 1.0, CENTRE)
+    img1 = warp(texture, affine)
+    flow = FrameToFrameOpticalFlow(cfg)
+    flow.process(0.0, texture)
+    pyr_a = flow._pyramid
+    pyr_b = build_pyramid(img1, cfg.levels, presmooth_sigma=cfg.presmooth_sigma)
+    n, p = len(flow._points), len(fine)
+    cache_b = new_template_cache(n, cfg.levels, p)
+    out, _, status = track_points(
+        pyr_a.data, pyr_a.offsets, pyr_a.widths, pyr_a.heights,
+        pyr_b.data, pyr_b.offsets, pyr_b.widths, pyr_b.heights,
+        flow._points, flow._levels, np.full(n, -1), *new_template_cache(0, cfg.levels, p),
+        *cache_b, fine, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, 0.0, pattern_coarse=coarse,
+    )
+    assert status.mean() > 0.9
+    err = np.linalg.norm(out[status] - apply_affine(affine, flow._points[status]), axis=1)
+    assert np.median(err) < 0.1 and np.mean(err < 1.0) > 0.98
+    st, data, valid, jac, aux = cache_b
+    checked = 0
+    for k in np.flatnonzero(status)[::7]:
+        c = int(flow._levels[k])
+        for lvl in range(c, cfg.levels):
+            if st[k, lvl] <= 0:
+                continue
+            pat = fine if lvl == c else coarse
+            m = len(pat)
+            scale = float(1 << lvl)
+            d, v, j, a = (np.empty(m, np.float32), np.empty(m, np.bool_),
+                          np.empty((m, 3), np.float32), np.empty((5, 3), np.float32))
+            make_template(pyr_b.data, pyr_b.offsets[lvl], pyr_b.widths[lvl], pyr_b.heights[lvl],
+                          out[k, 0] / scale, out[k, 1] / scale, pat, cfg.margin, d, v, j, a)
+            np.testing.assert_array_equal(data[k, lvl, :m], d)
+            np.testing.assert_array_equal(jac[k, lvl, :m], j)
+            np.testing.assert_array_equal(aux[k, lvl], a)
+            checked += 1
+    assert checked > 20
+
+
+def test_coarse_pattern_may_not_have_more_samples_than_the_pattern():
+    with pytest.raises(ConfigError, match="coarse_pattern"):
+        OpticalFlowConfig(pattern="grid9", coarse_pattern="grid11")
+    assert OpticalFlowConfig(pattern="grid9", coarse_pattern="grid7").coarse_pattern == "grid7"

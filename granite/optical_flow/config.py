@@ -13,7 +13,10 @@ from typing import Any, Mapping
 
 from granite.config_schema import spec_field, validate_instance
 from granite.errors import ConfigError
-from granite.optical_flow.patterns import PATTERN_NAMES
+from granite.optical_flow.patterns import PATTERN_NAMES, pattern_size
+
+#: ``coarse_pattern`` values: ``"same"`` (the ``pattern``) or a pattern name.
+COARSE_PATTERN_NAMES = ("same",) + PATTERN_NAMES
 
 
 @dataclass(frozen=True)
@@ -33,6 +36,13 @@ class OpticalFlowConfig:
             extent: 121 samples instead of 52, so the tracking estimate and the
             forward-backward distance carry less image noise (``docs/optical_flow.md``,
             "Noise"). ``grid9`` and ``grid13`` are the cheaper and the denser choice.
+        coarse_pattern: not in the reference (``"same"``: ``pattern`` on every level, as the
+            reference). The pattern of the levels above a patch's creation level, which only
+            seed the next finer level (their Gauss-Newton stops at 0.1 px): ``"grid7"`` (49
+            samples over the same extent) costs 40 % of ``grid11`` per sample pass there, and
+            a coarser level's pixels already average 4^k of the input's, so its noise is
+            lower. At most as many samples as ``pattern``. The creation level, the
+            forward-backward limit and the ZNCC test use ``pattern`` (``docs/optical_flow.md``).
         pattern_scale: scale of the pattern (both kinds span ±7 px before scaling).
         iterations: inverse-compositional Gauss-Newton iterations per pyramid level.
         fb_threshold_sq: forward-backward check; a track is kept when the squared distance
@@ -96,6 +106,8 @@ class OpticalFlowConfig:
     grid_size: int = spec_field(40, 4, 100000)
     detect_all_levels: bool = spec_field(True)
     pattern: str = spec_field("grid11", choices=PATTERN_NAMES, origin="ours", reference="pattern52")
+    coarse_pattern: str = spec_field("same", choices=COARSE_PATTERN_NAMES, origin="ours",
+                                     doc="\"same\": pattern on every level (the default and the reference)")
     pattern_scale: float = spec_field(0.75, 0.0, 4.0, lo_open=True)
     iterations: int = spec_field(6, 1, 1000)
     fb_threshold_sq: float = spec_field(0.03, 0.0, 1e12, lo_open=True)
@@ -123,6 +135,9 @@ class OpticalFlowConfig:
         if self.fast_min_threshold > self.fast_threshold:
             raise ConfigError("[optical_flow] fast_min_threshold: must not exceed fast_threshold "
                               f"({self.fast_threshold}), got {self.fast_min_threshold}")
+        if self.coarse_pattern != "same" and pattern_size(self.coarse_pattern) > pattern_size(self.pattern):
+            raise ConfigError(f"[optical_flow] coarse_pattern: {self.coarse_pattern!r} has more samples "
+                              f"than pattern {self.pattern!r}")
         if self.fb_noise_factor > 0.0 and self.fb_max_sq < self.fb_threshold_sq:
             raise ConfigError("[optical_flow] fb_max_sq: must be >= fb_threshold_sq when "
                               f"fb_noise_factor > 0, got {self.fb_max_sq!r}")

@@ -159,6 +159,9 @@ class FrameToFrameOpticalFlow:
         self.config = config or OpticalFlowConfig()
         self.image_size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
         self._pattern = make_pattern(self.config.pattern, self.config.pattern_scale)
+        coarse = self.config.coarse_pattern
+        self._pattern_coarse = (self._pattern if coarse == "same"
+                                else make_pattern(coarse, self.config.pattern_scale))
         self._pyramid: ImagePyramid | None = None
         self._ids = np.zeros(0, dtype=np.int64)
         self._points = np.zeros((0, 2))
@@ -294,6 +297,7 @@ class FrameToFrameOpticalFlow:
                     local_neighbours=cfg.local_retry_neighbours,
                     fb_var=fb_var, fb_max_sq=cfg.fb_max_sq, executor=executor,
                     guided_levels_above=cfg.guided_levels_above, share=share,
+                    pattern_coarse=self._pattern_coarse,
                 )
             job.track = track
         job.inputs = (self._ids, self._points, self._levels, self._angles)

@@ -36,7 +36,7 @@ def pattern52(scale: float = 0.75) -> np.ndarray:
 
 
 #: Pattern names accepted by :func:`make_pattern` (``[optical_flow] pattern``).
-PATTERN_NAMES = ("pattern52", "grid9", "grid11", "grid13")
+PATTERN_NAMES = ("pattern52", "grid7", "grid9", "grid11", "grid13")
 
 
 def grid_pattern(n: int, scale: float = 0.75) -> np.ndarray:
@@ -47,6 +47,11 @@ def grid_pattern(n: int, scale: float = 0.75) -> np.ndarray:
     g = np.linspace(-7.0, 7.0, n)
     yy, xx = np.meshgrid(g[::-1], g, indexing="ij")
     return np.ascontiguousarray(np.column_stack([xx.ravel(), yy.ravel()]) * float(scale))
+
+
+def pattern_size(name: str) -> int:
+    """Number of samples of the pattern called ``name`` (one of :data:`PATTERN_NAMES`)."""
+    return 52 if name == "pattern52" else int(name[4:]) ** 2
 
 
 def make_pattern(name: str, scale: float = 0.75) -> np.ndarray:

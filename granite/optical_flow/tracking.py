@@ -84,12 +84,14 @@ def track_level(
 @njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
 def track_point_at(
     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
-    x0, y0, gx, gy, level, pattern, radius, margin, iterations, st, data, valid, jac, aux, pt,
-    top=-1,
+    x0, y0, gx, gy, level, pattern, radius, pattern_c, radius_c, margin, iterations, st, data, valid,
+    jac, aux, pt, top=-1,
 ):
     """:func:`track_point` with the templates of point ``pt`` of template arrays of many points
     (``st`` (N, L), ``data`` (N, L, P), ``valid`` (N, L, P), ``jac`` (N, L, P, 3), ``aux``
-    (N, L, 5, 3)), read and written without making views of them."""
+    (N, L, 5, 3)), read and written without making views of them. Levels above the creation
+    level use ``pattern_c`` (at most P samples; its radius ``radius_c``), the creation level
+    ``pattern``: a point's template on a level is always made with the same one of the two."""
     tx = gx
     ty = gy
     theta = 0.0
@@ -97,16 +99,18 @@ def track_point_at(
     first = n_levels - 1 if top < 0 else min(top, n_levels - 1)
     for lvl in range(first, level - 1, -1):
         scale = float(1 << lvl)
+        fine = lvl == level
+        pat = pattern if fine else pattern_c
         if st[pt, lvl] < 0:
             st[pt, lvl] = make_template_at(
                 buf_a, offs_a[lvl], ws_a[lvl], hs_a[lvl], x0 / scale, y0 / scale,
-                pattern, margin, data, valid, jac, aux, pt, lvl,
+                pat, margin, data, valid, jac, aux, pt, lvl,
             )
         ok = st[pt, lvl] > 0
         if ok:
             ok, nx, ny, nt = track_level(
                 buf_b, offs_b[lvl], ws_b[lvl], hs_b[lvl], tx / scale, ty / scale, theta,
-                pattern, radius, margin, iterations,
+                pat, radius if fine else radius_c, margin, iterations,
                 _MIN_STEP_SQ if lvl == level else _MIN_STEP_SQ_COARSE,
                 st[pt, lvl], data, valid, jac, aux, pt, lvl,
             )
@@ -137,7 +141,7 @@ def track_point(
     """
     return track_point_at(
         buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
-        x0, y0, gx, gy, level, pattern, radius, margin, iterations,
+        x0, y0, gx, gy, level, pattern, radius, pattern, radius, margin, iterations,
         st.reshape((1,) + st.shape), data.reshape((1,) + data.shape),
         valid.reshape((1,) + valid.shape), jac.reshape((1,) + jac.shape),
         aux.reshape((1,) + aux.shape), 0, top,
@@ -201,6 +205,7 @@ def track_points(
     pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
     guess=None, order=None, min_zncc_guess=0.9, local_neighbours=8,
     fb_var=None, fb_max_sq=np.inf, executor=None, guided_levels_above=-1, share=None,
+    pattern_coarse=None,
 ):
     """Track all points of image A into image B with a forward-backward check.
 
@@ -250,6 +255,10 @@ def track_points(
             thread. The results are bit-identical to a call without it.
         executor: optional ``concurrent.futures`` executor with a free worker thread, which
             helps from the start (a share is made if none is given).
+        pattern_coarse: optional pattern (at most as many samples as ``pattern``) for the
+            levels above each point's creation level, which only seed the next finer level;
+            default ``pattern``. The creation level, the ZNCC test and the forward-backward
+            limit always use ``pattern``.
     Returns:
         (new_points (N, 2), theta (N,), status (N,) bool): status is True when the point was
         tracked A -> B and back B -> A to within ``fb_threshold_sq`` (squared distance in
@@ -270,11 +279,15 @@ def track_points(
     if fb_var.shape != (n_levels,):
         raise ValueError(f"fb_var must have shape ({n_levels},), got {fb_var.shape}")
     order = np.ascontiguousarray(order, dtype=np.int64)
+    pattern_c = pattern if pattern_coarse is None else np.ascontiguousarray(pattern_coarse, dtype=np.float64)
+    if pattern_c.shape[0] > pattern.shape[0]:
+        raise ValueError(f"pattern_coarse has {pattern_c.shape[0]} samples, more than the "
+                         f"pattern's {pattern.shape[0]} (the template rows)")
     args = (
         buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
         points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
         st_b, data_b, valid_b, jac_b, aux_b,
-        pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess,
+        pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess,
     )
     tail = (float(min_zncc_guess), int(local_neighbours), fb_var, float(fb_max_sq),
             int(guided_levels_above))
@@ -317,7 +330,7 @@ def _track_points(
     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
     st_b, data_b, valid_b, jac_b, aux_b,
-    pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
+    pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
     local_neighbours, fb_var, fb_max_sq, guided_levels_above,
 ):
     """Kernel of :func:`track_points` (``guess`` (N, 2) or (0, 2) for none). Also returns
@@ -328,7 +341,7 @@ def _track_points(
         buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
         points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
         st_b, data_b, valid_b, jac_b, aux_b,
-        pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
+        pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
         local_neighbours, fb_var, fb_max_sq, guided_levels_above, 0, n, out, theta, status, tried,
         score, local,
     )
@@ -348,7 +361,7 @@ def _track_passes_claimed(
     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
     st_b, data_b, valid_b, jac_b, aux_b,
-    pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
+    pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
     local_neighbours, fb_var, fb_max_sq, guided_levels_above, counter, chunk, out, theta, status,
     tried, score, local,
 ):
@@ -364,7 +377,7 @@ def _track_passes_claimed(
             buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
             points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
             st_b, data_b, valid_b, jac_b, aux_b,
-            pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
+            pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
             local_neighbours, fb_var, fb_max_sq, guided_levels_above, k0, min(k0 + chunk, n), out, theta,
             status, tried, score, local,
         )
@@ -375,7 +388,7 @@ def _track_passes(
     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
     st_b, data_b, valid_b, jac_b, aux_b,
-    pattern, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
+    pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
     local_neighbours, fb_var, fb_max_sq, guided_levels_above, k0, k1, out, theta, status, tried,
     score, local,
 ):
@@ -392,6 +405,7 @@ def _track_passes(
     # templates of points without a cached row: point 0 of one-point template arrays
     st_s, data_s, valid_s, jac_s, aux_s = _one_point_templates(n_levels, p)
     radius = pattern_radius(pattern)
+    radius_c = pattern_radius(pattern_c)
     for mode in order:
         flow_x = 0.0
         flow_y = 0.0
@@ -444,14 +458,14 @@ def _track_passes(
             if row >= 0:
                 ok, x1, y1, t1 = track_point_at(
                     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
-                    x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, margin, iterations,
+                    x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, pattern_c, radius_c, margin, iterations,
                     st_a, data_a, valid_a, jac_a, aux_a, row, top,
                 )
             else:
                 st_s[0, :] = -1
                 ok, x1, y1, t1 = track_point_at(
                     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
-                    x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, margin, iterations,
+                    x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, pattern_c, radius_c, margin, iterations,
                     st_s, data_s, valid_s, jac_s, aux_s, 0, top,
                 )
             if ok and per_point and min_zncc_guess > -1.0:
@@ -481,7 +495,7 @@ def _track_passes(
             st_b[k, :] = -1  # templates at a new position
             ok, xb, yb, _ = track_point_at(
                 buf_b, offs_b, ws_b, hs_b, buf_a, offs_a, ws_a, hs_a,
-                x1, y1, x1 - flow_x, y1 - flow_y, lvl, pattern, radius, margin, iterations,
+                x1, y1, x1 - flow_x, y1 - flow_y, lvl, pattern, radius, pattern_c, radius_c, margin, iterations,
                 st_b, data_b, valid_b, jac_b, aux_b, k, top,
             )
             if not ok:
