@@ -43,22 +43,33 @@ class LandmarkTriangulator:
         T_w_h = win.pose(host)
         frames = [f for f in win.frame_ids if f != host and f in tracks]
         baselines = {f: float(np.linalg.norm(win.pose(f)[:3, 3] - T_w_h[:3, 3])) for f in frames}
-        added = 0
-        for tid, b, ok in zip(new_ids, bearings, valid):
-            if not ok:
-                continue
+        # per new landmark: the frames that saw it and the one with the longest baseline (the
+        # first of equals), triangulated together per frame
+        keep = np.flatnonzero(valid)
+        seen_by = []
+        by_frame: dict[int, list[int]] = {}
+        for j in keep.tolist():
+            tid = new_ids[j]
             seen = [f for f in frames if tid in tracks[f].positions]
-            inv_dist = 0.0
-            candidates = sorted((f for f in seen if baselines[f] >= self.min_baseline),
-                                key=lambda f: -baselines[f]) if triangulate else []
-            for f in candidates[:1]:
-                inv_dist = self.inverse_distance(T_w_h, b, f, tracks[f].positions[tid])
-            win.add_landmark(tid, host, b, inv_dist)
+            seen_by.append(seen)
+            if triangulate:
+                best = None
+                for f in seen:
+                    if baselines[f] >= self.min_baseline and (best is None or baselines[f] > baselines[best]):
+                        best = f
+                if best is not None:
+                    by_frame.setdefault(best, []).append(j)
+        inv_dist = np.zeros(len(new_ids))
+        for f, rows in by_frame.items():
+            uv_f = np.array([tracks[f].positions[new_ids[j]] for j in rows])
+            inv_dist[rows] = self.inverse_distances(T_w_h, bearings[rows], f, uv_f)
+        for j, seen in zip(keep.tolist(), seen_by):
+            tid = new_ids[j]
+            win.add_landmark(tid, host, bearings[j], float(inv_dist[j]))
             win.add_observation(tid, host, host_tracks.positions[tid], host_tracks.levels[tid])
             for f in seen:
                 win.add_observation(tid, f, tracks[f].positions[tid], tracks[f].levels[tid])
-            added += 1
-        return added
+        return len(keep)
 
     def observe_hosted_by(self, host: int, frame_id: int, frame_tracks: FrameTracks) -> None:
         """Observations in ``frame_id`` of the landmarks a keyframe hosts that it tracks but does
@@ -70,32 +81,36 @@ class LandmarkTriangulator:
                 win.add_observation(tid, frame_id, frame_tracks.positions[tid],
                                     frame_tracks.levels[tid])
 
-    def inverse_distance(self, T_w_h: np.ndarray, bearing_h: np.ndarray, frame: int,
-                         uv) -> float:
-        """Inverse distance of a host bearing from one more observation at pixel ``uv`` in a
-        window frame; 0 when it fails."""
+    def inverse_distances(self, T_w_h: np.ndarray, bearings_h: np.ndarray, frame: int,
+                          uv: np.ndarray) -> np.ndarray:
+        """Inverse distances (n,) of host bearings (n, 3) (host pose ``T_w_h``) from one more
+        observation each, at pixels ``uv`` (n, 2) in the window frame ``frame``: two-view
+        triangulation of all of them at once; 0 where it fails (pixel not unprojectable,
+        rays parallel or not in front of both cameras)."""
         b_t, ok = self.bearings(uv)
-        if not ok[0]:
-            return 0.0
         T_t_h = se3_inverse(self.window.pose(frame)) @ T_w_h
-        points, valid = triangulate_bearings(T_t_h[:3, :3], T_t_h[:3, 3], bearing_h[None], b_t)
-        if not valid[0]:
-            return 0.0
-        distance = float(np.linalg.norm(points[0]))
-        return 1.0 / distance if distance > 0 else 0.0
+        points, valid = triangulate_bearings(T_t_h[:3, :3], T_t_h[:3, 3], bearings_h, b_t)
+        distance = np.linalg.norm(points, axis=1)
+        good = ok & valid & (distance > 0.0)
+        return np.where(good, 1.0 / np.where(good, distance, 1.0), 0.0)
 
     def retriangulate_infinite(self, frame_id: int) -> None:
         """Every new observation of a d = 0 landmark with enough baseline to its host triggers a
-        triangulation attempt (IV-B)."""
+        triangulation attempt (IV-B); the attempts of the landmarks of one host run together."""
         win = self.window
         db = win.landmarks
         T_w_c = win.pose(frame_id)
         ids = np.fromiter(db.observed_in(frame_id), dtype=np.int64)
         _, inv, hosts = db.states_of(ids)
-        for lm_id in ids[~(inv > 0.0) & (hosts != frame_id)].tolist():
-            lm = db.landmark(lm_id)
-            T_w_h = win.pose(lm.host_frame_id)
+        pick = ~(inv > 0.0) & (hosts != frame_id)
+        by_host: dict[int, list[int]] = {}
+        for lm_id, host in zip(ids[pick].tolist(), hosts[pick].tolist()):
+            by_host.setdefault(host, []).append(lm_id)
+        for host, lm_ids in by_host.items():
+            T_w_h = win.pose(host)
             if np.linalg.norm(T_w_c[:3, 3] - T_w_h[:3, 3]) < self.min_baseline:
                 continue
-            uv = db.observation(lm_id, frame_id).uv
-            win.set_inverse_distance(lm_id, self.inverse_distance(T_w_h, lm.bearing, frame_id, uv))
+            bearings = np.array([db.landmark(i).bearing for i in lm_ids])
+            uv = np.array([db.observation(i, frame_id).uv for i in lm_ids])
+            for lm_id, d in zip(lm_ids, self.inverse_distances(T_w_h, bearings, frame_id, uv).tolist()):
+                win.set_inverse_distance(lm_id, d)
