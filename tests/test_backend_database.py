@@ -309,3 +309,20 @@ def test_landmark_points_are_the_hosts_points_in_world_and_in_a_camera():
     T_x_w = np.linalg.inv(win.pose(win.frame_ids[-1]))
     np.testing.assert_allclose(win.landmark_points(ids, T_x_w),
                                expected @ T_x_w[:3, :3].T + T_x_w[:3, 3], rtol=0, atol=1e-12)
+
+
+def test_single_bearing_stereographic_parameter_has_the_bits_of_the_array_one():
+    """The plain-float path used when a landmark is added gives exactly the array function's
+    values (same operations in the same order), and rejects what it cannot represent."""
+    from granite.backend.stereographic import stereo_from_bearing, stereo_from_bearing3
+
+    rng = np.random.default_rng(11)
+    b = rng.normal(size=(5000, 3)) * rng.uniform(0.01, 100.0, size=(5000, 1))
+    b[:, 2] = np.abs(b[:, 2]) - 0.3 * np.abs(b[:, 0])  # some bearings point sideways or back
+    b = b[b[:, 2] / np.linalg.norm(b, axis=1) > -1.0 + 1e-6]
+    one = np.array([stereo_from_bearing3(v) for v in b])
+    np.testing.assert_array_equal(one, stereo_from_bearing(b))
+    with pytest.raises(ValueError):
+        stereo_from_bearing3([0.0, 0.0, -2.0])
+    with pytest.raises(ValueError):
+        stereo_from_bearing3([0.0, 0.0, 0.0])

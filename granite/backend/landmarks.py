@@ -20,7 +20,7 @@ import numpy as np
 
 from granite.backend.observation_store import Observation, ObservationSlots
 from granite.backend.packing import PackedObservations, pack_structure
-from granite.backend.stereographic import bearings_from_stereo, stereo_from_bearing
+from granite.backend.stereographic import bearings_from_stereo, stereo_from_bearing3
 
 
 class _StateStore:
@@ -222,7 +222,7 @@ class LandmarkDatabase:
         if not np.isfinite(inv_dist) or inv_dist < 0.0:
             raise ValueError(f"landmark {landmark_id}: inverse distance must be >= 0, "
                              f"got {inv_dist}")
-        s = stereo_from_bearing(np.asarray(bearing, dtype=np.float64).reshape(3))
+        s = stereo_from_bearing3(np.asarray(bearing, dtype=np.float64).reshape(3))
         st = self._store
         if st.n - len(self._landmarks) > max(1024, len(self._landmarks)):
             self._compact_states()

@@ -9,6 +9,8 @@ which no camera observes.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -47,6 +49,21 @@ def stereo_from_bearing(bearing: np.ndarray) -> np.ndarray:
     if np.any(b[..., 2] <= -1.0 + 1e-9):
         raise ValueError("bearing points backwards (b_z = -1): no stereographic parameter")
     return b[..., :2] / (1.0 + b[..., 2:3])
+
+
+def stereo_from_bearing3(bearing) -> tuple[float, float]:
+    """:func:`stereo_from_bearing` of one bearing (3 numbers) in plain float arithmetic, the
+    same operations in the same order (the same bits, ``tests/test_backend_database.py``),
+    without numpy's per-call overhead (landmark creation adds hundreds per keyframe)."""
+    x, y, z = (float(v) for v in bearing)
+    n = math.sqrt(x * x + y * y + z * z)
+    if not n > 0.0:
+        raise ValueError(f"bearing ({x}, {y}, {z}) has no direction")
+    bz = z / n
+    if bz <= -1.0 + 1e-9:
+        raise ValueError("bearing points backwards (b_z = -1): no stereographic parameter")
+    d = 1.0 + bz
+    return (x / n) / d, (y / n) / d
 
 
 def bearings_from_stereo(s: np.ndarray) -> np.ndarray:
