@@ -125,6 +125,16 @@ class EstimatorConfig:
             model, whose pose for frame k is corrected by the rotation that maps frame k's
             predicted track bearings onto the tracked ones (Kabsch). False: from frame k's
             optimised pose (frame k+1's tracking waits for frame k's optimisation).
+        tracked_rotation_guess: not in the reference (which starts from the last pose). With
+            ``motion_guided_tracking`` and ``predict_before_estimate``, the optimisation of a
+            frame starts from the constant-velocity position and the rotation its tracks
+            measured: the rotation from the previous frame that the predictions assumed,
+            corrected by the rotation that maps the predicted track bearings onto the tracked
+            ones (Kabsch), on the previous frame's current estimate. In a fast turn the
+            constant-velocity rotation is off by the angular acceleration (4-5 degrees per
+            frame in the 20 s ``aggressive`` flight at 16 s), Gauss-Newton then did not
+            converge in its 7 iterations and the estimate broke (docs/estimator.md). False:
+            the constant-velocity pose.
     """
 
     keyframe_entropy_fraction: float = spec_field(0.995, 0.0, 1.0, lo_open=True)
@@ -143,6 +153,7 @@ class EstimatorConfig:
     max_velocity_extrapolation: float = spec_field(5.0, 0.0, 1000.0, lo_open=True, origin="ours")
     motion_guided_tracking: bool = spec_field(True, origin="ours", reference=False)
     predict_before_estimate: bool = spec_field(True, origin="ours", reference=False)
+    tracked_rotation_guess: bool = spec_field(True, origin="ours", reference=False)
     reinit_keeps_scale: bool = spec_field(True, origin="ours", reference=False)
     scene_distance_min_points: int = spec_field(20, 1, 100000, origin="ours")
     init_max_candidates: int = spec_field(3, 0, 1000, origin="ours", reference=0)

@@ -98,6 +98,10 @@ class MonocularVO:
         self._prediction_basis: PredictionBasis | None = None
         #: the last predictions handed to the frontend (ids, pixels)
         self._last_prediction: tuple[np.ndarray, np.ndarray] | None = None
+        self._last_prediction_rotation: np.ndarray | None = None
+        #: (timestamp, T_w_c): the motion model's pose for the frame whose tracks
+        #: :meth:`note_tracks` saw, with the rotation its tracks measured (``tracked_rotation_guess``)
+        self._tracked_guess: tuple[float, np.ndarray] | None = None
         self.keyframe_log: list[tuple[int, int]] = []  # (frame id, sub-map) of every keyframe
         self.export_landmarks = False  # fill FrameOutput.landmarks_w (costs ~1 ms per frame)
 
@@ -239,6 +243,15 @@ class MonocularVO:
         win.remove_outliers()
         return negative_entropy, inserted
 
+    def _initial_guess(self, timestamp: float) -> np.ndarray:
+        """Where the optimisation of a frame starts: the motion model's pose, with the rotation
+        the frame's tracks measured when :meth:`note_tracks` found one
+        (``tracked_rotation_guess``)."""
+        tracked = self._tracked_guess
+        if tracked is not None and tracked[0] == timestamp:
+            return tracked[1].copy()
+        return self.motion.predict(timestamp)
+
     # ----------------------------------------------------------------------------- main
     def predict_tracks(self, timestamp: float) -> tuple[np.ndarray, np.ndarray] | None:
         """The frontend's guesses for a frame at ``timestamp`` (motion-guided tracking): the
@@ -247,6 +260,9 @@ class MonocularVO:
         estimator step (``predict_before_estimate``, the default) or after its optimisation."""
         basis = self._prediction_basis
         self._last_prediction = None if basis is None else basis.predict(self.camera, timestamp)
+        #: the rotation from the basis frame to this frame that the predictions assumed
+        self._last_prediction_rotation = None if basis is None else \
+            basis.T_w_old[:3, :3].T @ basis.model.predict(timestamp)[:3, :3]
         return self._last_prediction
 
     @property
@@ -264,6 +280,7 @@ class MonocularVO:
         if not (est.motion_guided_tracking and est.predict_before_estimate) or tracks.rejected is not None:
             return
         model = self.motion
+        self._tracked_guess = None
         if not model.has_motion:
             self._prediction_basis = None
             return
@@ -273,6 +290,13 @@ class MonocularVO:
             _, i_p, i_t = np.intersect1d(last[0], tracks.ids, assume_unique=True, return_indices=True)
             R = bearing_rotation(self.camera, last[1][i_p], tracks.positions[i_t])
             if R is not None:
+                prev = self._previous_frame
+                if est.tracked_rotation_guess and prev is not None and prev in self.window:
+                    # the tracks' rotation from the previous frame, on its current estimate
+                    guess = T_w_c.copy()
+                    U, _, Vt = np.linalg.svd(self.window.pose(prev)[:3, :3] @ self._last_prediction_rotation @ R.T)
+                    guess[:3, :3] = U @ Vt  # the nearest rotation: products of rotations drift
+                    self._tracked_guess = (timestamp, guess)
                 T_w_c[:3, :3] = T_w_c[:3, :3] @ R.T
         model = model.copy()
         model.update(T_w_c, timestamp, measure_motion=True)
@@ -302,7 +326,7 @@ class MonocularVO:
         self._tracks[frame_id] = FrameTracks.from_result(tracks)
         win = self.window
         starts_submap = self.state is MapState.EMPTY
-        guess = np.eye(4) if starts_submap else self.motion.predict(timestamp)
+        guess = np.eye(4) if starts_submap else self._initial_guess(timestamp)
         win.add_frame(frame_id, guess, is_keyframe=starts_submap)
         self._timestamps[frame_id] = timestamp
         keyframe_taken = False
