@@ -45,6 +45,7 @@ def test_reference_file_is_the_defaults_with_our_additions_off():
                        ("optical_flow", "fb_noise_factor"), ("optical_flow", "guided_levels_above"),
                        ("estimator", "constant_velocity"), ("estimator", "motion_guided_tracking"),
                        ("estimator", "predict_before_estimate"), ("estimator", "tracked_rotation_guess"),
+                       ("estimator", "outlier_reoptimize_iterations"),
                        ("estimator", "reinit_keeps_scale"), ("estimator", "init_max_candidates"),
                        ("estimator", "init_candidate_min_parallax"),
                        ("estimator", "init_keep_reference"), ("estimator", "entropy_iteration"),

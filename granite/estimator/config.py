@@ -135,6 +135,16 @@ class EstimatorConfig:
             frame in the 20 s ``aggressive`` flight at 16 s), Gauss-Newton then did not
             converge in its 7 iterations and the estimate broke (docs/estimator.md). False:
             the constant-velocity pose.
+        outlier_reoptimize_iterations: not in the reference (0: off; the reference publishes
+            the estimate its outliers pulled on). When the outlier removal after a frame's
+            optimisation takes at least ``outlier_reoptimize_min_fraction`` of the frame's own
+            observations, the window is optimised again for this many iterations, so the
+            published pose, the keyframe's new landmarks and the states marginalised next are
+            estimated without them. A Huber-weighted outlier pulls like a residual at the Huber
+            threshold, 2-10 times the pull of a tracked inlier, and with few observations per
+            frame one outlier bent the estimate (docs/estimator.md).
+        outlier_reoptimize_min_fraction: the share of the frame's observations the outlier
+            removal must take for the re-optimisation (0: any outlier of the frame).
     """
 
     keyframe_entropy_fraction: float = spec_field(0.995, 0.0, 1.0, lo_open=True)
@@ -154,6 +164,8 @@ class EstimatorConfig:
     motion_guided_tracking: bool = spec_field(True, origin="ours", reference=False)
     predict_before_estimate: bool = spec_field(True, origin="ours", reference=False)
     tracked_rotation_guess: bool = spec_field(True, origin="ours", reference=False)
+    outlier_reoptimize_iterations: int = spec_field(2, 0, 1000, origin="ours", reference=0)
+    outlier_reoptimize_min_fraction: float = spec_field(0.005, 0.0, 1.0, origin="ours")
     reinit_keeps_scale: bool = spec_field(True, origin="ours", reference=False)
     scene_distance_min_points: int = spec_field(20, 1, 100000, origin="ours")
     init_max_candidates: int = spec_field(3, 0, 1000, origin="ours", reference=0)
