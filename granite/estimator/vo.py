@@ -5,8 +5,9 @@ initialisation while fewer than ``min_finite_observations`` finite landmarks are
 (Sec. IV-C, :mod:`granite.estimator.map_initialization`) -> sliding-window Gauss-Newton ->
 negative-entropy keyframe decision (Sec. IV-D; the *previous* frame becomes the keyframe and hosts
 new landmarks, :mod:`granite.estimator.landmark_creation`) -> re-triangulation of points at
-infinity -> failure check (restart, new sub-map) -> outlier removal and marginalisation
-(:mod:`granite.estimator.window_policy`). The states and their transitions are in
+infinity -> outlier removal (ours: then a few more iterations without the outliers when they
+were a noticeable share of the frame's observations) -> failure check (restart, new sub-map) ->
+marginalisation (:mod:`granite.estimator.window_policy`). The states and their transitions are in
 :mod:`granite.estimator.tracking_state`.
 
 Before a map exists every landmark is at infinity (d = 0), so the VO tracks rotation only; the
@@ -221,7 +222,8 @@ class MonocularVO:
     def _optimize_and_select_keyframe(self, frame_id: int) -> tuple[float | None, bool]:
         """Gauss-Newton on the window, then the keyframe decision of Sec. IV-D (taken on the
         system linearised after ``entropy_iteration`` iterations), re-triangulation of points
-        at infinity and outlier removal. Returns (negative entropy, keyframe inserted)."""
+        at infinity, outlier removal and, when that took enough of the frame's observations,
+        a few more iterations without them. Returns (negative entropy, keyframe inserted)."""
         win, est = self.window, self.config.estimator
         # the system linearised after ``entropy_iteration`` steps (0-based index of the loop)
         report = win.optimize(snapshot_iteration=est.entropy_iteration)
