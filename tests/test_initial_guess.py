@@ -12,15 +12,10 @@ from scipy.spatial.transform import Rotation
 
 from granite.estimator.config import VoConfig
 from granite.estimator.vo import MonocularVO
+from granite.geometry.interpolation import interpolate_poses
 from granite.io import open_dataset
 
 AGGRESSIVE = Path(__file__).resolve().parents[1] / "assets" / "sequences" / "aggressive"
-
-
-def _truth_rotations(dataset_root: Path, timestamps: np.ndarray) -> list[np.ndarray]:
-    gt = np.loadtxt(dataset_root / "groundtruth.tum")
-    rows = [int(np.argmin(np.abs(gt[:, 0] - t))) for t in timestamps]
-    return [Rotation.from_quat(gt[r, 4:8]).as_matrix() for r in rows]
 
 
 def _angle_deg(R: np.ndarray) -> float:
@@ -35,7 +30,8 @@ def _guess_errors(tracked_rotation_guess: bool):
     cfg = VoConfig.from_dict({"estimator": {"tracked_rotation_guess": tracked_rotation_guess}})
     vo = MonocularVO(ds.calibration.camera(), cfg)
     frames = list(ds.frames(0, len(ds)))
-    truth = _truth_rotations(AGGRESSIVE, np.array([f.timestamp for f in frames]))
+    gt = ds.ground_truth
+    truth = interpolate_poses(gt.timestamps, gt.poses, np.array([f.timestamp for f in frames]))[:, :3, :3]
     used, plain, turn = [], [], []
     previous = None
     for i, f in enumerate(frames):

@@ -244,17 +244,16 @@ class MonocularVO:
             frame_id, forced=finite + infinite < est.keyframe_min_connected, triangulate=measured)
         if measured:
             self.triangulator.retriangulate_infinite(frame_id)
-        removed = win.remove_outliers()
-        if est.outlier_reoptimize_iterations and removed:
-            self._reoptimize_without_outliers(frame_id, sum(1 for _, f in removed if f == frame_id))
+        self._reoptimize_without_outliers(frame_id, win.remove_outliers())
         return negative_entropy, inserted
 
-    def _reoptimize_without_outliers(self, frame_id: int, removed_here: int) -> None:
-        """Optimise the window again after the outlier removal took ``removed_here`` of the
-        frame's own observations, if that is at least ``outlier_reoptimize_min_fraction`` of
-        them (``outlier_reoptimize_iterations``)."""
+    def _reoptimize_without_outliers(self, frame_id: int, removed: list[tuple[int, int]]) -> None:
+        """Optimise the window again for ``outlier_reoptimize_iterations`` when the outlier
+        removal (``removed``: its ``(landmark, frame)`` pairs) took at least
+        ``outlier_reoptimize_min_fraction`` of the frame's own observations."""
         est, win = self.config.estimator, self.window
-        if removed_here == 0 or frame_id not in win:
+        removed_here = sum(1 for _, f in removed if f == frame_id)
+        if not est.outlier_reoptimize_iterations or removed_here == 0 or frame_id not in win:
             return
         kept = sum(win.num_connected(frame_id))
         if removed_here >= est.outlier_reoptimize_min_fraction * (kept + removed_here):
