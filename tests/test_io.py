@@ -418,13 +418,20 @@ def test_open_euroc(tmp_path: Path) -> None:
     assert open_dataset(root / "mav0").format == "euroc"  # the mav0 folder itself
 
 
-def test_open_euroc_unsupported_distortion_and_calib_override(tmp_path: Path) -> None:
+def test_open_euroc_distortion_and_calib_override(tmp_path: Path) -> None:
     root = tmp_path / "seq"
     make_euroc(root)
     write(root / "mav0/cam0/sensor.yaml", EUROC_SENSOR_YAML)
-    ds = open_dataset(root)
-    assert ds.calibration is None and "radial-tangential" in ds.notes[0]
+    ds = open_dataset(root)  # EuRoC's own radial-tangential camera: undistorted to a pinhole
+    assert ds.calibration.camera_type == "pinhole" and "radial-tangential" in ds.notes[0]
+    assert ds.undistortion.source.intrinsics["k1"] == -0.28340811
+    assert np.allclose(ds.calibration.T_imu_cam, ds.undistortion.source.T_imu_cam)
     assert ds.ground_truth is None
+    write(root / "mav0/cam0/sensor.yaml", EUROC_SENSOR_YAML.replace(
+        "distortion_model: radial-tangential", "distortion_model: fov").replace(
+        "[-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]", "[0.9]"))
+    ds = open_dataset(root)
+    assert ds.calibration is None and "'fov'" in ds.notes[0] and ds.undistortion is None
     write_calibration(tmp_path / "my.json", CALIBS[1])
     assert open_dataset(root, calib_path=tmp_path / "my.json").calibration.camera_type == "kb4"
 

@@ -155,7 +155,8 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
             result.evaluation_error = str(error)
             print(f"granite: warning: evaluation failed, no evaluation.json written: {error}", file=sys.stderr)
     extra = {"dataset": str(dataset.root), "format": dataset.format, "config": config_label or "given",
-             "rpe_delta": delta, "evaluation_error": result.evaluation_error}
+             "rpe_delta": delta, "evaluation_error": result.evaluation_error,
+             "undistortion": dataset.undistortion.describe() if dataset.undistortion is not None else None}
     write_run(out, result, config, extra, formats)
     (out / "evaluation.json").unlink(missing_ok=True)
     if evaluation is not None:

@@ -8,6 +8,7 @@ file and, where it applies, the 1-based line. Every writer is atomic (:mod:`.ato
 from granite.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text, check_writable
 from granite.io.calibration import (
     CAMERA_PARAMS,
+    RADTAN,
     Calibration,
     parse_calibration,
     read_calibration,
@@ -37,13 +38,16 @@ from granite.io.run_folder import attach_submaps, read_estimate, read_submaps
 from granite.io.trajectory_file import detect_trajectory_format, read_trajectory
 from granite.io.tum import format_tum, parse_tum, read_tum, write_tum
 from granite.io.tum_rgbd import read_tum_rgbd_list
+from granite.io.undistortion import Undistortion
 
 __all__ = [
     "CAMERA_PARAMS",
+    "RADTAN",
     "FORMATS",
     "Calibration",
     "Dataset",
     "Frame",
+    "Undistortion",
     "SensorInfo",
     "atomic_path",
     "attach_submaps",

@@ -13,8 +13,11 @@ Layout (only ``value0.intrinsics[0]`` and ``value0.resolution[0]`` are required 
         "accel_bias_std": [..], "gyro_bias_std": [..], "cam_time_offset_ns": 0}}
 
 Camera types and parameter names (Basalt's): ``pinhole`` fx fy cx cy; ``kb4`` fx fy cx cy
-k1 k2 k3 k4; ``ds`` fx fy cx cy xi alpha. ``T_imu_cam`` maps camera points into the IMU /
-body frame; the quaternion is Hamilton.
+k1 k2 k3 k4; ``ds`` fx fy cx cy xi alpha; ``pinhole-radtan8`` fx fy cx cy k1 k2 p1 p2 and the
+optional k3 k4 k5 k6 (default 0; OpenCV's rational radial-tangential model; Basalt's ``rpmax``
+is ignored). The first three are the VO's camera models; a ``pinhole-radtan8`` camera's images
+are undistorted to a pinhole camera when the dataset reads them (:mod:`granite.io.undistortion`).
+``T_imu_cam`` maps camera points into the IMU / body frame; the quaternion is Hamilton.
 """
 
 from __future__ import annotations
@@ -35,12 +38,17 @@ from granite.io.atomic import atomic_write_text
 if TYPE_CHECKING:
     from granite.camera import CameraModel
 
+#: The radial-tangential camera type (Basalt's name), undistorted to a pinhole camera on read.
+RADTAN = "pinhole-radtan8"
 #: Required intrinsic parameter names per camera type, in Basalt's order.
 CAMERA_PARAMS: dict[str, tuple[str, ...]] = {
     "pinhole": ("fx", "fy", "cx", "cy"),
     "kb4": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
     "ds": ("fx", "fy", "cx", "cy", "xi", "alpha"),
+    RADTAN: ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
 }
+#: Optional intrinsic parameters per camera type and their defaults.
+OPTIONAL_PARAMS: dict[str, dict[str, float]] = {RADTAN: {"k3": 0.0, "k4": 0.0, "k5": 0.0, "k6": 0.0}}
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,6 +70,8 @@ class Calibration:
         if missing:
             raise ValueError(f"{self.camera_type} intrinsics lack {missing}")
         params = {k: float(self.intrinsics[k]) for k in CAMERA_PARAMS[self.camera_type]}
+        for k, default in OPTIONAL_PARAMS.get(self.camera_type, {}).items():
+            params[k] = float(self.intrinsics.get(k, default))
         if not all(math.isfinite(v) for v in params.values()):
             raise ValueError("intrinsics must be finite")
         if int(self.width) <= 0 or int(self.height) <= 0:
@@ -77,9 +87,14 @@ class Calibration:
 
     def camera(self) -> CameraModel:
         """The camera model object (:func:`granite.camera.make_camera`; raises
-        :class:`granite.errors.ConfigError` for parameters outside the model's range)."""
+        :class:`granite.errors.ConfigError` for parameters outside the model's range, and for
+        a ``pinhole-radtan8`` calibration, whose images the dataset undistorts: use
+        :attr:`granite.io.Dataset.calibration`, the pinhole camera of those images)."""
         from granite.camera import make_camera
 
+        if self.camera_type == RADTAN:
+            raise ConfigError(f"camera type {RADTAN} is not a VO camera model: its images are "
+                              "undistorted to a pinhole camera when a dataset reads them")
         return make_camera(self.camera_type, dict(self.intrinsics), self.width, self.height)
 
     def to_json_dict(self) -> dict[str, Any]:
@@ -148,6 +163,9 @@ def parse_calibration(data: Any, path: str | Path) -> Calibration:
         name: _number(_get(params, name, f"{jcam}.intrinsics", p), f"{jcam}.intrinsics.{name}", p)
         for name in CAMERA_PARAMS[ctype]
     }
+    for name in OPTIONAL_PARAMS.get(ctype, {}):
+        if isinstance(params, dict) and name in params:
+            intrinsics[name] = _number(params[name], f"{jcam}.intrinsics.{name}", p)
     res = _get(_get(root, "resolution", "value0", p), 0, "value0.resolution", p)
     if (
         not isinstance(res, list)
@@ -168,7 +186,12 @@ def parse_calibration(data: Any, path: str | Path) -> Calibration:
         T_imu_cam = pose_from_pq(np.array([v["px"], v["py"], v["pz"]]), q / norm)
     try:
         calib = Calibration(ctype, intrinsics, res[0], res[1], T_imu_cam)
-        calib.camera()  # the camera model validates parameter ranges
+        if ctype == RADTAN:  # valid when a pinhole view of it exists
+            from granite.io.undistortion import Undistortion
+
+            Undistortion(calib)
+        else:
+            calib.camera()  # the camera model validates parameter ranges
     except (ValueError, ConfigError) as error:
         raise InputError(f"{jcam}: {error}", p) from None
     return calib

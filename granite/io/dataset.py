@@ -4,7 +4,7 @@
 
 * ``euroc``: EuRoC/ASL, ``<root>/mav0/cam0/data.csv`` + ``data/`` (also accepted when the
   path is the ``mav0`` folder itself). Calibration from ``cam0/sensor.yaml`` (pinhole with
-  zero radial-tangential distortion, or equidistant = ``kb4``); ground truth from
+  radial-tangential distortion, or equidistant = ``kb4``); ground truth from
   ``mav0/state_groundtruth_estimate0/data.csv`` converted to camera poses with ``T_BS``.
 * ``testbench``: the granite test-bench output, EuRoC layout plus ``calib.json`` and/or
   ``groundtruth.tum`` (camera poses ``T_w_c``) at the root; these are preferred.
@@ -13,7 +13,10 @@
   ground truth ``../../poses/<name>.txt``).
 
 In every layout a ``calib.json`` (Basalt format) at the root is preferred, and an explicit
-``calib_path`` / ``groundtruth_path`` overrides everything. Layout problems raise
+``calib_path`` / ``groundtruth_path`` overrides everything. A radial-tangential calibration
+(``pinhole-radtan8``; EuRoC's distortion) makes the dataset undistort every image it reads to a
+pinhole camera, which is then its ``calibration`` (:mod:`granite.io.undistortion`; ``notes``
+says so). Layout problems raise
 :class:`InputError` when the dataset is opened; unreadable images do not: :meth:`Dataset.frames`
 yields them with ``image=None`` and the reason, for the VO to skip and count.
 """
@@ -27,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from granite.errors import InputError
-from granite.io.calibration import Calibration, read_calibration
+from granite.io.calibration import RADTAN, Calibration, read_calibration
 from granite.io.euroc import (
     read_euroc_groundtruth,
     read_euroc_image_list,
@@ -39,6 +42,7 @@ from granite.io.kitti import read_kitti_intrinsics, read_kitti_poses, read_kitti
 from granite.io.trajectory_file import read_trajectory
 from granite.io.tum import read_tum
 from granite.io.tum_rgbd import read_tum_rgbd_list
+from granite.io.undistortion import Undistortion
 from granite.trajectory import Trajectory
 
 FORMATS = ("euroc", "testbench", "tum", "kitti")
@@ -66,7 +70,10 @@ class Dataset:
         timestamps: ``(N,)`` float64 seconds, strictly increasing (read-only).
         timestamps_ns: ``(N,)`` int64 nanoseconds for EuRoC layouts, else ``None``.
         ground_truth: camera poses ``T_w_c`` or ``None``.
-        calibration: :class:`Calibration` or ``None`` (``notes`` says why when it is missing).
+        calibration: :class:`Calibration` or ``None`` (``notes`` says why when it is missing);
+            the camera of the images :meth:`frame` returns (never radial-tangential).
+        undistortion: the :class:`~granite.io.undistortion.Undistortion` applied to every image
+            read (its ``source`` is the radial-tangential calibration), or ``None``.
         notes: human-readable remarks made while opening (e.g. unsupported distortion).
     """
 
@@ -92,8 +99,16 @@ class Dataset:
         self.timestamps_ns = None if timestamps_ns is None else np.array(timestamps_ns, np.int64)
         self._image_paths = list(image_paths)
         self.ground_truth = ground_truth
+        self.undistortion = None
         self.calibration = calibration
         self.notes = tuple(notes)
+        if calibration is not None and calibration.camera_type == RADTAN:
+            try:
+                self.undistortion = Undistortion(calibration)
+            except ValueError as error:
+                raise InputError(f"radial-tangential calibration: {error}", root) from None
+            self.calibration = self.undistortion.target
+            self.notes += (self.undistortion.describe(),)
 
     def __len__(self) -> int:
         return len(self._image_paths)
@@ -116,9 +131,12 @@ class Dataset:
         path = self._image_paths[index]
         t = float(self.timestamps[index])
         try:
-            return Frame(index, t, read_image(path), None, path)
+            image = read_image(path)
         except InputError as error:
             return Frame(index, t, None, error.message, path)
+        if self.undistortion is not None:
+            image = self.undistortion.apply(image)
+        return Frame(index, t, image, None, path)
 
     def frames(self, start: int = 0, stop: int | None = None) -> Iterator[Frame]:
         """Lazily yield frames ``start .. stop-1`` in time order (images read one at a time)."""
@@ -128,6 +146,10 @@ class Dataset:
 
 
 # --------------------------------------------------------------------------- layouts
+
+
+#: ``distortion_model`` names of the radial-tangential model in ``sensor.yaml`` files.
+_RADTAN_NAMES = ("radial-tangential", "radtan", "plumb_bob", "rational_polynomial")
 
 
 def _calibration_from_sensor(path: Path, notes: list[str]) -> Calibration | None:
@@ -153,9 +175,13 @@ def _calibration_from_sensor(path: Path, notes: list[str]) -> Calibration | None
         return Calibration("kb4", params, w, h, T)
     if not any(dist):
         return Calibration("pinhole", params, w, h, T)
+    if model in _RADTAN_NAMES and len(dist) in (4, 5, 8):
+        # OpenCV's order: k1 k2 p1 p2 [k3 [k4 k5 k6]]
+        params.update(zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), dist))
+        return Calibration(RADTAN, params, w, h, T)
     notes.append(
-        f"no calibration: distortion model {model!r} of {path} is not supported "
-        "(use pinhole, kb4 or ds in a calib.json)"
+        f"no calibration: distortion model {model!r} with {len(dist)} coefficients of {path} is "
+        "not supported (radial-tangential takes 4, 5 or 8; or use pinhole, kb4 or ds in a calib.json)"
     )
     return None
 
