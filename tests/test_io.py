@@ -464,9 +464,30 @@ def test_open_tum_rgbd(tmp_path: Path) -> None:
     write_tum(root / "groundtruth.txt", gt)
     ds = open_dataset(root)
     assert (ds.format, len(ds), ds.calibration) == ("tum", 4, None)
+    assert "640x480" in ds.notes[0]  # the freiburg1 camera's, but these images are 8x6
     assert ds.timestamps[1] == pytest.approx(1305031102.208304)
     assert [int(f.image[0, 0]) for f in ds.frames()] == [0, 1, 2, 3]
     assert np.allclose(ds.ground_truth.poses, gt.poses, atol=1e-12)
+
+
+@pytest.mark.parametrize("camera", ["freiburg1", "freiburg3", "kinect"])
+def test_open_tum_rgbd_with_the_published_calibration(tmp_path: Path, camera: str) -> None:
+    root = tmp_path / f"rgbd_dataset_{camera}_desk"
+    (root / "rgb").mkdir(parents=True)
+    cv2.imwrite(str(root / "rgb/0.png"), np.full((480, 640, 3), 90, np.uint8))
+    write(root / "rgb.txt", "1305031102.175304 rgb/0.png\n")
+    ds = open_dataset(root)
+    if camera == "kinect":
+        assert ds.calibration is None and "freiburg1/2/3" in ds.notes[0]
+        return
+    assert (ds.calibration.camera_type, ds.calibration.width, ds.calibration.height) == ("pinhole", 640, 480)
+    if camera == "freiburg1":  # radial-tangential: undistorted on read
+        assert ds.undistortion.source.intrinsics["fx"] == 517.306408
+        assert ds.undistortion.source.intrinsics["k3"] == 1.163314
+    else:
+        assert ds.undistortion is None and ds.calibration.intrinsics["fy"] == 539.2
+    write_calibration(root / "calib.json", CALIBS[0])  # a calib.json wins
+    assert open_dataset(root).calibration.intrinsics == CALIBS[0].intrinsics
 
 
 def test_open_kitti(tmp_path: Path) -> None:

@@ -8,7 +8,8 @@
   ``mav0/state_groundtruth_estimate0/data.csv`` converted to camera poses with ``T_BS``.
 * ``testbench``: the granite test-bench output, EuRoC layout plus ``calib.json`` and/or
   ``groundtruth.tum`` (camera poses ``T_w_c``) at the root; these are preferred.
-* ``tum``: TUM RGB-D, ``rgb.txt`` (+ optional ``groundtruth.txt``).
+* ``tum``: TUM RGB-D, ``rgb.txt`` (+ optional ``groundtruth.txt``); without a ``calib.json``,
+  the published calibration of the freiburg1/2/3 camera named in the folder name.
 * ``kitti``: KITTI odometry sequence, ``image_0/`` + ``times.txt`` (+ ``calib.txt``;
   ground truth ``../../poses/<name>.txt``).
 
@@ -215,9 +216,43 @@ def _open_euroc(root: Path, mav0: Path, calib: Calibration | None, gt_path: Path
     )
 
 
+#: The published intrinsics of the three TUM RGB-D cameras (the dataset's "file formats"
+#: page; the ROS default calibration for freiburg3, whose images are undistorted): fx fy cx cy
+#: and the radial-tangential k1 k2 p1 p2 k3 of the 640x480 colour images.
+TUM_RGBD_CAMERAS = {
+    "freiburg1": (517.306408, 516.469215, 318.643040, 255.313989,
+                  0.262383, -0.953104, -0.005358, 0.002628, 1.163314),
+    "freiburg2": (520.908620, 521.007327, 325.141442, 249.701764,
+                  0.231222, -0.784899, -0.003257, -0.000105, 0.917205),
+    "freiburg3": (535.4, 539.2, 320.1, 247.6, 0.0, 0.0, 0.0, 0.0, 0.0),
+}
+
+
+def _tum_rgbd_camera(root: Path, images: list[Path], notes: list[str]) -> Calibration | None:
+    """The published calibration of the TUM RGB-D camera named in the folder name
+    (``rgbd_dataset_freiburg1_xyz``), for its 640x480 images."""
+    camera = next((c for c in TUM_RGBD_CAMERAS if c in root.name), None)
+    if camera is None:
+        notes.append(f"no calibration: no calib.json in {root} (and no freiburg1/2/3 in its name)")
+        return None
+    size = _first_image_size(images)
+    if size != (640, 480):
+        notes.append(f"no calibration: the {camera} camera's images are 640x480, these {size}")
+        return None
+    fx, fy, cx, cy, k1, k2, p1, p2, k3 = TUM_RGBD_CAMERAS[camera]
+    notes.append(f"calibration: the published intrinsics of the TUM RGB-D {camera} camera "
+                 "(a calib.json in the folder or --calib overrides them)")
+    params = {"fx": fx, "fy": fy, "cx": cx, "cy": cy}
+    if not any((k1, k2, p1, p2, k3)):
+        return Calibration("pinhole", params, 640, 480)
+    return Calibration(RADTAN, {**params, "k1": k1, "k2": k2, "p1": p1, "p2": p2, "k3": k3}, 640, 480)
+
+
 def _open_tum(root: Path, calib: Calibration | None, gt_path: Path | None) -> Dataset:
     times, names = read_tum_rgbd_list(root / "rgb.txt")
-    notes = [] if calib is not None else [f"no calibration: no calib.json in {root}"]
+    notes: list[str] = []
+    if calib is None:
+        calib = _tum_rgbd_camera(root, [root / n for n in names], notes)
     gt_default = root / "groundtruth.txt"
     gt = None
     if gt_path is not None:
