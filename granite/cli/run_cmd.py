@@ -183,7 +183,8 @@ def write_run_report(out: Path, result: RunResult, dataset, evaluation: dict | N
 
     plots = write_plots(out, result.trajectory, result.diagnostics, [t for t, _, _ in result.keyframes],
                         dataset.ground_truth, delta)
-    header = (f"dataset: `{dataset.root}` ({len(dataset)} images, format {dataset.format})",
+    camera = () if dataset.undistortion is None else (f"camera: {dataset.undistortion.describe()}",)
+    header = (f"dataset: `{dataset.root}` ({len(dataset)} images, format {dataset.format})", *camera,
               f"configuration: {config_label}", f"run folder: `{out}`", *header)
     summary = summary_dict(result)
     write_report(out / "report.md", report_markdown(title, header, summary, evaluation,
@@ -242,6 +243,8 @@ def run(args) -> int:
                                      concurrent=not args.sequential)
     for line in summary_lines(result, evaluation, args.delta):
         print(line)
+    if dataset.undistortion is not None:
+        print(dataset.undistortion.describe())
     print(f"outputs: {args.out} (report: {args.out / 'report.md'})")
     if result.interrupted:
         print("interrupted: the outputs hold the frames processed so far", file=sys.stderr)
