@@ -187,9 +187,9 @@ def parse_calibration(data: Any, path: str | Path) -> Calibration:
     try:
         calib = Calibration(ctype, intrinsics, res[0], res[1], T_imu_cam)
         if ctype == RADTAN:  # valid when a pinhole view of it exists
-            from granite.io.undistortion import Undistortion
+            from granite.io.undistortion import pinhole_view
 
-            Undistortion(calib)
+            pinhole_view(calib)
         else:
             calib.camera()  # the camera model validates parameter ranges
     except (ValueError, ConfigError) as error:
