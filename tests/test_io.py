@@ -490,6 +490,32 @@ def test_open_tum_rgbd_with_the_published_calibration(tmp_path: Path, camera: st
     assert open_dataset(root).calibration.intrinsics == CALIBS[0].intrinsics
 
 
+def test_open_kitti_colour_camera(tmp_path: Path) -> None:
+    """The colour download (image_2 only): camera 2's intrinsics, and camera 0's ground truth
+    moved to camera 2, whose projection ``P2 = K [I | t]`` places it at ``-t`` in camera 0's
+    frame (built here from a chosen K and t)."""
+    seq = tmp_path / "dataset/sequences/00"
+    (seq / "image_2").mkdir(parents=True)
+    for i in range(2):
+        assert cv2.imwrite(str(seq / f"image_2/{i:06d}.png"), np.full((6, 8, 3), 50 + i, np.uint8))
+    write(seq / "times.txt", "0.0\n0.1\n")
+    K = np.array([[700.0, 0, 600], [0, 700, 180], [0, 0, 1]])
+    t = np.array([0.06, -0.0003, 0.002])
+    P2 = np.hstack([K, (K @ t)[:, None]])
+    write(seq / "calib.txt", "P0: 7.07e+02 0 6.01e+02 0 0 7.08e+02 1.83e+02 0 0 0 1 0\n"
+          + "P2: " + " ".join(repr(float(v)) for v in P2.ravel()) + "\n")
+    write(tmp_path / "dataset/poses/00.txt",
+          "1 0 0 0 0 1 0 0 0 0 1 0\n0 -1 0 1 1 0 0 2 0 0 1 3\n")
+    ds = open_dataset(seq)
+    assert ds.calibration.intrinsics == {"fx": 700.0, "fy": 700.0, "cx": 600.0, "cy": 180.0}
+    assert ds.frame(1).image[0, 0] == 51 and "camera 2" in ds.notes[0]
+    # x_2 = K (X_0 + t): camera 2's centre is at -t in camera 0's frame
+    expected_1 = np.array([[0, -1, 0, 1], [1, 0, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1.0]])
+    expected_1[:3, 3] += expected_1[:3, :3] @ -t
+    assert np.allclose(ds.ground_truth.poses[1], expected_1, atol=1e-12)
+    assert np.allclose(ds.ground_truth.poses[0][:3, 3], -t, atol=1e-12)
+
+
 def test_open_kitti(tmp_path: Path) -> None:
     seq = tmp_path / "dataset/sequences/05"
     for i in range(3):

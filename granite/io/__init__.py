@@ -31,6 +31,7 @@ from granite.io.kitti import (
     format_kitti_poses,
     read_kitti_intrinsics,
     read_kitti_poses,
+    read_kitti_projection,
     read_kitti_times,
     write_kitti_poses,
 )
@@ -67,6 +68,7 @@ __all__ = [
     "read_euroc_image_list",
     "read_image",
     "read_kitti_intrinsics",
+    "read_kitti_projection",
     "read_kitti_poses",
     "read_kitti_times",
     "read_sensor_yaml",

@@ -10,8 +10,9 @@
   ``groundtruth.tum`` (camera poses ``T_w_c``) at the root; these are preferred.
 * ``tum``: TUM RGB-D, ``rgb.txt`` (+ optional ``groundtruth.txt``); without a ``calib.json``,
   the published calibration of the freiburg1/2/3 camera named in the folder name.
-* ``kitti``: KITTI odometry sequence, ``image_0/`` + ``times.txt`` (+ ``calib.txt``;
-  ground truth ``../../poses/<name>.txt``).
+* ``kitti``: KITTI odometry sequence, ``image_0/`` (else ``image_1..3/``, e.g. the colour
+  download) + ``times.txt`` (+ ``calib.txt``; ground truth ``../../poses/<name>.txt``, camera
+  0's poses, moved to the camera used by ``calib.txt``).
 
 In every layout a ``calib.json`` (Basalt format) at the root is preferred, and an explicit
 ``calib_path`` / ``groundtruth_path`` overrides everything. A radial-tangential calibration
@@ -39,7 +40,7 @@ from granite.io.euroc import (
     seconds_from_ns,
 )
 from granite.io.images import read_image
-from granite.io.kitti import read_kitti_intrinsics, read_kitti_poses, read_kitti_times
+from granite.io.kitti import read_kitti_poses, read_kitti_projection, read_kitti_times
 from granite.io.trajectory_file import read_trajectory
 from granite.io.tum import read_tum
 from granite.io.tum_rgbd import read_tum_rgbd_list
@@ -263,10 +264,18 @@ def _open_tum(root: Path, calib: Calibration | None, gt_path: Path | None) -> Da
                    notes=tuple(notes))
 
 
+#: KITTI odometry image folders in order of preference: the left grayscale camera, the right
+#: one, then the colour cameras (the colour download holds only those).
+KITTI_IMAGE_DIRS = ("image_0", "image_1", "image_2", "image_3")
+
+
 def _open_kitti(root: Path, calib: Calibration | None, gt_path: Path | None) -> Dataset:
-    image_dir, times_path = root / "image_0", root / "times.txt"
-    if not image_dir.is_dir():
-        raise InputError("KITTI layout: image_0/ folder not found", image_dir)
+    times_path = root / "times.txt"
+    found = [d for d in KITTI_IMAGE_DIRS if (root / d).is_dir()]
+    if not found:
+        raise InputError(f"KITTI layout: none of {', '.join(KITTI_IMAGE_DIRS)} found", root)
+    image_dir = root / found[0]
+    camera = int(found[0][-1])
     times = read_kitti_times(times_path)
     images = sorted(image_dir.glob("*.png"))
     if not images:
@@ -275,23 +284,30 @@ def _open_kitti(root: Path, calib: Calibration | None, gt_path: Path | None) -> 
         message = f"{len(times)} timestamps but {len(images)} images in {image_dir}"
         raise InputError(message, times_path)
     notes: list[str] = []
-    if calib is None:
-        calib_txt = root / "calib.txt"
-        if calib_txt.is_file():
-            params = read_kitti_intrinsics(calib_txt)
+    calib_txt = root / "calib.txt"
+    T_c0_ci = np.eye(4)
+    if calib_txt.is_file():
+        params, T_c0_ci = read_kitti_projection(calib_txt, camera)
+        if calib is None:
             size = _first_image_size(images)
             if size is None:
                 notes.append(f"no calibration: no image in {image_dir} could be read")
             else:
                 calib = Calibration("pinhole", params, size[0], size[1])
-        else:
-            notes.append(f"no calibration: {calib_txt} not found")
+    elif calib is None:
+        notes.append(f"no calibration: {calib_txt} not found")
+    if camera != 0:
+        notes.append(f"images of camera {camera} ({image_dir.name}); its ground truth is camera 0's "
+                     f"moved by {T_c0_ci[:3, 3].round(4).tolist()} m" if calib_txt.is_file()
+                     else f"images of camera {camera}; without calib.txt its ground truth is camera 0's")
     gt = None
     gt_default = root.parent.parent / "poses" / f"{root.name}.txt"
     if gt_path is not None:
         gt = read_kitti_poses(gt_path, times)
     elif gt_default.is_file():
         gt = read_kitti_poses(gt_default, times)
+    if gt is not None and camera != 0:  # the poses files hold camera 0's poses
+        gt = Trajectory(gt.timestamps, gt.poses @ T_c0_ci, gt.submap)
     return Dataset(root.name, "kitti", root, times, images, gt, calib, notes=tuple(notes))
 
 
@@ -334,12 +350,12 @@ def open_dataset(
         return _open_euroc(root.parent, root, calib, gt_path)
     if (root / "rgb.txt").is_file():
         return _open_tum(root, calib, gt_path)
-    if (root / "image_0").is_dir() or (root / "times.txt").is_file():
+    if any((root / d).is_dir() for d in KITTI_IMAGE_DIRS) or (root / "times.txt").is_file():
         if not (root / "times.txt").is_file():
             raise InputError("KITTI layout: times.txt not found", root / "times.txt")
         return _open_kitti(root, calib, gt_path)
     raise InputError(
         "unknown dataset layout: expected mav0/cam0/ (EuRoC/ASL or test-bench), rgb.txt "
-        "(TUM RGB-D) or image_0/ + times.txt (KITTI)",
+        "(TUM RGB-D) or image_0/ (or image_1..3/) + times.txt (KITTI)",
         root,
     )

@@ -1,10 +1,12 @@
 """KITTI odometry files.
 
-A sequence folder ``sequences/XX`` holds ``image_0/NNNNNN.png`` (left grayscale camera),
-``times.txt`` (one timestamp in seconds per line) and ``calib.txt`` (``P0: p00 .. p23``, the
-3x4 projection matrix of camera 0; pinhole ``fx = p00, fy = p11, cx = p02, cy = p12``).
-Ground truth ``poses/XX.txt`` (next to ``sequences/``): per image one row of 12 numbers, the
-row-major 3x4 ``T_w_c`` of camera 0 (world = first camera frame).
+A sequence folder ``sequences/XX`` holds ``image_0/NNNNNN.png`` (left grayscale camera; the
+colour download has ``image_2`` / ``image_3`` instead), ``times.txt`` (one timestamp in seconds
+per line) and ``calib.txt`` (``P0: p00 .. p23`` to ``P3``, the rectified 3x4 projection
+matrices ``P_i = K_i [I | t_i]`` of the four cameras in camera 0's frame; pinhole ``fx = p00,
+fy = p11, cx = p02, cy = p12``, and camera i sits at ``-t_i`` in camera 0's frame, ``t_i =
+K_i^-1 P_i[:, 3]``). Ground truth ``poses/XX.txt`` (next to ``sequences/``): per image one row of
+12 numbers, the row-major 3x4 ``T_w_c`` of camera 0 (world = first camera frame).
 """
 
 from __future__ import annotations
@@ -37,21 +39,31 @@ def read_kitti_times(path: str | Path) -> np.ndarray:
     return np.array(times)
 
 
-def read_kitti_intrinsics(path: str | Path) -> dict[str, float]:
-    """Pinhole ``{fx, fy, cx, cy}`` from the ``P0:`` row of ``calib.txt``."""
+def read_kitti_projection(path: str | Path, camera: int = 0) -> tuple[dict[str, float], np.ndarray]:
+    """Pinhole ``{fx, fy, cx, cy}`` of camera ``camera`` (0-3) from its ``P<camera>:`` row of
+    ``calib.txt``, and ``T_c0_ci`` (4, 4): that camera's pose in camera 0's frame (a
+    translation: the rectified cameras share camera 0's orientation)."""
     p = Path(path)
+    name = f"P{camera}"
     for number, line in data_lines(read_text(p, "calibration file")):
         key, _, rest = line.partition(":")
-        if key.strip() != "P0":
+        if key.strip() != name:
             continue
         fields = rest.split()
         if len(fields) != 12:
-            raise InputError(f"P0: expected 12 numbers, got {len(fields)}", p, number)
-        P = np.array(parse_row(fields, [f"P0[{i}]" for i in range(12)], p, number)).reshape(3, 4)
+            raise InputError(f"{name}: expected 12 numbers, got {len(fields)}", p, number)
+        P = np.array(parse_row(fields, [f"{name}[{i}]" for i in range(12)], p, number)).reshape(3, 4)
         if P[0, 0] <= 0 or P[1, 1] <= 0:
-            raise InputError("P0: focal lengths must be positive", p, number)
-        return {"fx": P[0, 0], "fy": P[1, 1], "cx": P[0, 2], "cy": P[1, 2]}
-    raise InputError("no 'P0:' row", p)
+            raise InputError(f"{name}: focal lengths must be positive", p, number)
+        T_c0_ci = np.eye(4)
+        T_c0_ci[:3, 3] = -np.linalg.solve(P[:, :3], P[:, 3])
+        return {"fx": P[0, 0], "fy": P[1, 1], "cx": P[0, 2], "cy": P[1, 2]}, T_c0_ci
+    raise InputError(f"no '{name}:' row", p)
+
+
+def read_kitti_intrinsics(path: str | Path) -> dict[str, float]:
+    """Pinhole ``{fx, fy, cx, cy}`` from the ``P0:`` row of ``calib.txt``."""
+    return read_kitti_projection(path, 0)[0]
 
 
 def read_kitti_poses(path: str | Path, timestamps: np.ndarray) -> Trajectory:
