@@ -175,7 +175,7 @@ def test_tracks_a_known_warp_with_sub_tenth_pixel_median_error(texture, name, af
 
 def test_coarse_to_fine_is_what_follows_large_motion(texture):
     affine = similarity(45.5, -30.2, 0.0, 1.0, CENTRE)
-    single = OpticalFlowConfig(levels=1, retry_min_flow=0.0)
+    single = OpticalFlowConfig(levels=1, retry_min_flow=0.0, global_retry_min_lost=0.0)
     p0, p1, _, _ = track_pair(texture, warp(texture, affine), single)
     good = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1) < 0.5
     assert good.sum() < 5  # a single level cannot follow 55 px
@@ -191,7 +191,8 @@ def test_median_flow_retry_recovers_points_without_usable_coarse_levels(texture)
     img1 = warp(texture, affine)
     counts = {}
     for retry in (0.0, 2.0):
-        config = OpticalFlowConfig(retry_min_flow=retry, local_retry_rounds=0, presmooth_sigma=0.0)
+        config = OpticalFlowConfig(retry_min_flow=retry, local_retry_rounds=0, presmooth_sigma=0.0,
+                                   global_retry_min_lost=0.0)
         p0, p1, r0, _ = track_pair(texture, img1, config)
         truth = apply_affine(affine, p0)
         # The warp mirrors the image at its border: judge points that stay in view.

@@ -100,6 +100,11 @@ class OpticalFlowConfig:
         max_tracks_per_cell: not in the reference (0 = no limit, the reference). After
             tracking, at most this many tracks per detection cell of their creation level are
             kept, the oldest ones (``frame_to_frame.crowded_tracks_kept``).
+        global_retry_min_lost: not in the reference (0 = off, the reference). When tracking
+            lost at least this share of the points (of at least 20), they are tracked again
+            from where one homography between the two images predicts them: ORB matches over
+            the whole images and RANSAC (:mod:`granite.optical_flow.global_motion`; frames after
+            a burst of dropped frames, whose predictions were far off).
     """
 
     levels: int = spec_field(6, 1, 12)
@@ -129,6 +134,8 @@ class OpticalFlowConfig:
                                         doc="0 disables (the reference)")
     fb_max_sq: float = spec_field(0.3, 0.0, 1e4, lo_open=True, origin="ours")
     max_tracks_per_cell: int = spec_field(0, 0, 100000, origin="ours", doc="0: no limit (the reference)")
+    global_retry_min_lost: float = spec_field(0.7, 0.0, 1.0, origin="ours", reference=0.0,
+                                              doc="0 disables (the reference)")
 
     def __post_init__(self) -> None:
         validate_instance(self, "optical_flow")

@@ -27,11 +27,12 @@ import numpy as np
 
 from granite.optical_flow.config import OpticalFlowConfig
 from granite.optical_flow.detection import detect_new_points
+from granite.optical_flow.global_motion import homography_guess, image_homography
 from granite.optical_flow.noise import estimate_noise, level_noise_gains
 from granite.optical_flow.patterns import make_pattern
 from granite.optical_flow.work_share import PointShare
 from granite.optical_flow.pyramid import SUPPORTED_DTYPES, ImagePyramid, build_pyramid
-from granite.optical_flow.tracking import new_template_cache, pass_order, track_points
+from granite.optical_flow.tracking import PASS_GUESS, new_template_cache, pass_order, track_points
 
 
 class FrameRejectedWarning(UserWarning):
@@ -163,6 +164,7 @@ class FrameToFrameOpticalFlow:
         self._pattern_coarse = (self._pattern if coarse == "same"
                                 else make_pattern(coarse, self.config.pattern_scale))
         self._pyramid: ImagePyramid | None = None
+        self._image_u8: np.ndarray | None = None  # level 0 of the reference frame, 8 bits
         self._ids = np.zeros(0, dtype=np.int64)
         self._points = np.zeros((0, 2))
         self._levels = np.zeros(0, dtype=np.int64)
@@ -191,6 +193,7 @@ class FrameToFrameOpticalFlow:
     def reset(self) -> None:
         """Forget all tracks and the reference frame (ids keep increasing)."""
         self._pyramid = None
+        self._image_u8 = None
         self._ids = np.zeros(0, dtype=np.int64)
         self._points = np.zeros((0, 2))
         self._levels = np.zeros(0, dtype=np.int64)
@@ -285,20 +288,27 @@ class FrameToFrameOpticalFlow:
             points, levels, rows, cache_a, cache_b = self._points, self._levels, self._rows, self._cache, job.cache
             share = job.share  # not the job itself: no reference cycle keeping its arrays alive
 
+            prev_u8, cur_u8 = self._image_u8, _level0_u8(prep)
+
             def track():
-                return track_points(
-                    prev.data, prev.offsets, prev.widths, prev.heights,
-                    pyramid.data, pyramid.offsets, pyramid.widths, pyramid.heights,
-                    points, levels, rows, *cache_a, *cache_b,
-                    self._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow,
-                    guess=guess, min_zncc_guess=cfg.guess_min_zncc,
-                    order=pass_order(guess is not None, cfg.local_retry_rounds,
-                                     cfg.guided_levels_above >= 0),
-                    local_neighbours=cfg.local_retry_neighbours,
-                    fb_var=fb_var, fb_max_sq=cfg.fb_max_sq, executor=executor,
-                    guided_levels_above=cfg.guided_levels_above, share=share,
-                    pattern_coarse=self._pattern_coarse,
+                common = dict(min_zncc_guess=cfg.guess_min_zncc, local_neighbours=cfg.local_retry_neighbours,
+                              fb_var=fb_var, fb_max_sq=cfg.fb_max_sq,
+                              guided_levels_above=cfg.guided_levels_above, pattern_coarse=self._pattern_coarse)
+                images = (prev.data, prev.offsets, prev.widths, prev.heights,
+                          pyramid.data, pyramid.offsets, pyramid.widths, pyramid.heights)
+                tail = (self._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow)
+                result = track_points(
+                    *images, points, levels, rows, *cache_a, *cache_b, *tail,
+                    guess=guess, order=pass_order(guess is not None, cfg.local_retry_rounds,
+                                                  cfg.guided_levels_above >= 0),
+                    executor=executor, share=share, **common,
                 )
+                lost = ~result[2]
+                if (cfg.global_retry_min_lost > 0.0 and prev_u8 is not None and len(lost) >= _GLOBAL_RETRY_MIN_POINTS
+                        and lost.sum() >= cfg.global_retry_min_lost * len(lost)):
+                    _global_retry(result, lost, prev_u8, cur_u8, images, points, levels, rows, cache_a,
+                                  cache_b, tail, common)
+                return result
             job.track = track
         job.inputs = (self._ids, self._points, self._levels, self._angles)
         job.config = cfg
@@ -317,6 +327,7 @@ class FrameToFrameOpticalFlow:
         det_ids = np.arange(self._next_id, self._next_id + n_new, dtype=np.int64)
         self._next_id += n_new
         self._pyramid = job.prepared.pyramid
+        self._image_u8 = _level0_u8(job.prepared) if self.config.global_retry_min_lost > 0.0 else None
         self._noise = job.prepared.noise
         self._cache = job.cache
         self._rows = np.concatenate([job.rows, np.full(n_new, -1, dtype=np.int64)])
@@ -421,3 +432,37 @@ def crowded_tracks_kept(ids: np.ndarray, points: np.ndarray, levels: np.ndarray,
     keep = np.zeros(n, dtype=bool)
     keep[order[rank < max_per_cell]] = True
     return keep
+
+
+#: The global retry needs at least this many points in the reference frame.
+_GLOBAL_RETRY_MIN_POINTS = 20
+
+
+def _level0_u8(prep: PreparedImage) -> np.ndarray:
+    """Level 0 of a prepared image's pyramid as 8 bits (made ahead of time for the detection)."""
+    if prep.images_u8 is not None and 0 in prep.images_u8:
+        return prep.images_u8[0]
+    return prep.pyramid.level_uint8(0)
+
+
+def _global_retry(result, lost, image_a, image_b, images, points, levels, rows, cache_a, cache_b,
+                  tail, common) -> None:
+    """Track the ``lost`` points of ``result`` (``track_points``'s output, updated in place, and
+    their template rows of ``cache_b``) again from where the homography between the two
+    8-bit images predicts them (:mod:`granite.optical_flow.global_motion`), guided pass only;
+    nothing changes when no homography is found."""
+    H = image_homography(image_a, image_b)
+    if H is None:
+        return
+    idx = np.flatnonzero(lost)
+    guess = homography_guess(H, points[idx])
+    sub_cache = tuple(a[idx] for a in cache_b)
+    sub_cache[0][:] = -1  # template rows not computed yet
+    new_points, theta, status = track_points(
+        *images, points[idx], levels[idx], rows[idx], *cache_a, *sub_cache, *tail,
+        guess=guess, order=np.array([PASS_GUESS], dtype=np.int64), **common)
+    found = idx[status]
+    result[0][found], result[1][found], result[2][found] = new_points[status], theta[status], True
+    for a, sub in zip(cache_b, sub_cache):
+        a[found] = sub[status]
+
