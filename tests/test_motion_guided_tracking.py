@@ -89,7 +89,7 @@ def test_a_good_prediction_follows_motion_the_unguided_tracker_loses(texture):
     pixel or two of the truth can."""
     affine = similarity(45.5, -30.2, np.radians(3), 1.0, CENTRE)
     img1 = warp(texture, affine)
-    single = OpticalFlowConfig(levels=1, retry_min_flow=0.0)
+    single = OpticalFlowConfig(levels=1, retry_min_flow=0.0, global_retry_min_lost=0.0)
     rng = np.random.default_rng(2)
     noisy_truth = lambda p: apply_affine(affine, p) + rng.normal(0, 1.0, p.shape)  # noqa: E731
     p0_u, _, _ = _guided_pair(texture, img1, single, None)
