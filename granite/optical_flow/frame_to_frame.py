@@ -288,7 +288,8 @@ class FrameToFrameOpticalFlow:
             points, levels, rows, cache_a, cache_b = self._points, self._levels, self._rows, self._cache, job.cache
             share = job.share  # not the job itself: no reference cycle keeping its arrays alive
 
-            prev_u8, cur_u8 = self._image_u8, _level0_u8(prep)
+            prev_u8 = self._image_u8  # None with the global retry off
+            cur_u8 = _level0_u8(prep) if prev_u8 is not None else None
 
             def track():
                 common = dict(min_zncc_guess=cfg.guess_min_zncc, local_neighbours=cfg.local_retry_neighbours,
