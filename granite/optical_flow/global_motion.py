@@ -3,9 +3,9 @@ for the tracks that the frame-to-frame tracking lost all at once.
 
 After a burst of dropped frames the tracks' predicted positions (the constant-velocity motion,
 or zero motion) can be far off: across six dropped frames of the ``aggressive`` flight the
-camera turned 12 degrees instead of the extrapolated 47 and the image moved 65 px, and none of
-the tracks was found again (docs/estimator.md). Features matched by appearance over the whole
-image do not need a guess. Over terrain seen from above, one homography (the ground plane's,
+camera turned 12 degrees, the constant-velocity guess was 35 degrees off and the image moved
+65 px, and none of the tracks was found again (docs/estimator.md). Features matched by
+appearance over the whole image do not need a guess. Over terrain seen from above, one homography (the ground plane's,
 rotation included) predicts every track within a few pixels, and the patch tracker then finds
 them from there (:meth:`granite.optical_flow.FrameToFrameOpticalFlow.begin`, ours, option
 ``[optical_flow] global_retry_min_lost``).
