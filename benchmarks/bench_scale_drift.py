@@ -1,8 +1,14 @@
 """Validation of the scale-drift indicator Λ_scaledrift (paper Sec. V, Eq. 17, Fig. 4).
 
     python benchmarks/bench_scale_drift.py PATH [PATH ...] [--out DIR] [--delta 1] [--lag 1]
-                                           [--bin 5] [--plot] [--cost DATASET]
+                                           [--bin 5] [--align-frames 100] [--plot] [--cost DATASET]
                                            [--exclude-scale-fix] [--config FILE]
+    python benchmarks/bench_scale_drift.py --render spiral [--width 640 --height 480] --out DIR --plot
+
+--render SCENARIO renders that scenario's whole flight with ``granite-sim render`` (at
+``--width`` x ``--height``, default 640x480, the sensor model on) into DIR/<scenario>_<w>x<h>
+first (resumable: finished frames are kept) and adds it to the PATHs: the full 60 s ``spiral``
+(1201 frames) takes about 20-45 min of CPU on 2 cores.
 
 PATH is a run folder of `granite run` (diagnostics.csv with the scale_drift_indicator columns;
 its dataset is read from summary.json) or a test-bench dataset folder, which is run first (in
@@ -20,6 +26,9 @@ for Eq. 17 (``Λ``) and the reference code's variant (``Λ_ref``) side by side:
 * ρ(bins): Spearman correlation, over ``--bin`` second bins, of the median Λ with the RMS true
   scale-drift rate (:func:`granite.evaluation.scale_drift_rate`: change of the log of the true
   relative scale error over ``--delta`` s of motion, per second, over ``--lag`` s);
+* the RMS true relative scale error and the RMS RPE over ``--delta`` with the scale fixed by the
+  Sim(3) alignment on the first ``--align-frames`` poses of each sub-map (paper Fig. 4: 100;
+  :func:`granite.evaluation.rpe` with ``fixed_scales``), beside the scale-free RPE of Eq. 18-20;
 * the median Λ and the RMS drift rate of the run; with several runs, Kendall's τ of the run
   ordering by median Λ against the ordering by RMS drift rate;
 * the keyframe system over the run (does it follow the flight?): the number of keyframes, the
@@ -27,7 +36,8 @@ for Eq. 17 (``Λ``) and the reference code's variant (``Λ_ref``) side by side:
   maximum and median over the frames; from ``landmarks.npz``).
 
 --plot writes DIR/<name>_scale_drift.png (height, true relative scale error, Λ and Λ_ref,
-drift rate over time, as the paper's Fig. 4). --cost DATASET runs the VO in-process on the
+drift rate, and the RPE per pair with the fixed scale and scale-free, over time, as the paper's
+Fig. 4). --cost DATASET runs the VO in-process on the
 dataset and times the indicator per frame (keyframe system: linearisation of the keyframe
 observations and landmark elimination; chain: reparametrisation, Schur, eigen-solver).
 """
@@ -38,6 +48,7 @@ import argparse
 import functools
 import json
 import os
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -48,7 +59,7 @@ import numpy as np  # noqa: E402
 from scipy.stats import kendalltau, spearmanr  # noqa: E402
 
 from granite.estimator.diagnostics import read_diagnostics  # noqa: E402
-from granite.evaluation import ate, relative_scale_error, scale_drift_rate  # noqa: E402
+from granite.evaluation import ate, relative_scale_error, rpe, scale_drift_rate  # noqa: E402
 from granite.io import open_dataset  # noqa: E402
 from granite.io.run_folder import read_estimate  # noqa: E402
 
@@ -109,7 +120,7 @@ def _spearman(x, y) -> float:
 
 
 def analyse(run: Path, delta: float, lag: float, bin_s: float, plot_dir: Path | None,
-            min_motion: float = 0.1) -> dict:
+            min_motion: float = 0.1, align_frames: int | None = 100) -> dict:
     diags = read_diagnostics(run / "diagnostics.csv")
     summary = json.loads((run / "summary.json").read_text())
     dataset = open_dataset(summary["dataset"])
@@ -119,8 +130,10 @@ def analyse(run: Path, delta: float, lag: float, bin_s: float, plot_dir: Path | 
     lam = {k: np.array([np.nan if getattr(d, c) is None else getattr(d, c) for d in diags])
            for k, c in (("eq17", "scale_drift_indicator"), ("ref", "scale_drift_indicator_ref"))}
     height = np.interp(t, gt.timestamps, gt.positions[:, 2])
-    scales = ate(traj, gt, align="sim3").scales
+    scales = ate(traj, gt, align="sim3", align_frames=align_frames).scales
     series = relative_scale_error(traj, gt, delta, scales, min_motion=min_motion)
+    rpe_fixed = rpe(traj, gt, delta, fixed_scales=scales)
+    rpe_free = rpe(traj, gt, delta)
     rows = np.clip(np.searchsorted(traj.timestamps, series.timestamps - 1e-9), 0, len(traj) - 1)
     rate = scale_drift_rate(series, lag, traj.submap_ids()[rows])
     elig_a, elig_b = _eligible(diags)
@@ -129,7 +142,8 @@ def analyse(run: Path, delta: float, lag: float, bin_s: float, plot_dir: Path | 
     out = {"run": str(run), "dataset": summary["dataset"], "frames": len(diags),
            "tracked": int(sum(d.state in TRACKED for d in diags)),
            "rms_drift_rate": float(np.sqrt(np.mean(rate.rates ** 2))) if rate.rates.size else None,
-           "rms_scale_error": series.rms}
+           "rms_scale_error": series.rms, "align_frames": align_frames,
+           "rpe_fixed_scale_rmse": rpe_fixed.rmse, "rpe_rmse": rpe_free.rmse}
     for key, v in lam.items():
         defined = np.isfinite(v)
         med_lam, rms_rate = [], []
@@ -148,7 +162,8 @@ def analyse(run: Path, delta: float, lag: float, bin_s: float, plot_dir: Path | 
         }
     out["keyframe_system"] = keyframe_turnover(run, float(t[-1]))
     if plot_dir is not None:
-        _plot(plot_dir / f"{run.name}_scale_drift.png", t - t0, height, series, rate, lam, t0)
+        _plot(plot_dir / f"{run.name}_scale_drift.png", t - t0, height, series, rate, lam, t0,
+              (rpe_fixed, rpe_free), align_frames)
     return out
 
 
@@ -175,21 +190,27 @@ def keyframe_turnover(run: Path, t_end: float) -> dict:
     return out
 
 
-def _plot(path: Path, t, height, series, rate, lam, t0) -> None:
+def _plot(path: Path, t, height, series, rate, lam, t0, rpes, align_frames) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    fig = Figure(figsize=(10, 8), layout="constrained")
-    ax = fig.subplots(4, 1, sharex=True)
+    fig = Figure(figsize=(10, 10), layout="constrained")
+    ax = fig.subplots(5, 1, sharex=True)
     ax[0].plot(t, height, color="tab:orange")
     ax[0].set(ylabel="height [m]")
     ax[1].plot(series.timestamps - t0, 100 * series.errors, color="tab:blue")
-    ax[1].set(ylabel="true rel. scale error [%]")
+    aligned = "all poses" if align_frames is None else f"the first {align_frames} poses"
+    ax[1].set(ylabel="true rel. scale error [%]", title=f"scale of the Sim(3) alignment on {aligned}")
     ax[2].plot(t, lam["eq17"], color="tab:green", label="Λ (Eq. 17)")
     ax[2].plot(t, lam["ref"], color="tab:purple", label="Λ_ref (reference variant)")
     ax[2].set(ylabel="Λ", yscale="log")
     ax[2].legend(fontsize=8)
     ax[3].plot(rate.timestamps - t0, rate.rates, color="tab:gray", lw=0.8)
-    ax[3].set(ylabel="scale-drift rate [1/s]", xlabel="time [s]")
+    ax[3].set(ylabel="scale-drift rate [1/s]")
+    fixed, free = rpes
+    ax[4].plot(fixed.timestamps - t0, fixed.errors, color="tab:red", lw=0.8, label="alignment's fixed scale")
+    ax[4].plot(free.timestamps - t0, free.errors, color="tab:blue", lw=0.8, label="scale-free (Eq. 18-20)")
+    ax[4].set(ylabel=f"RPE over {fixed.delta:g} s [m]", xlabel="time [s]")
+    ax[4].legend(fontsize=8)
     for a in ax:
         a.grid(alpha=0.3)
     FigureCanvasAgg(fig).print_png(str(path))
@@ -240,22 +261,40 @@ def cost(dataset_path: str) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("paths", nargs="*", type=Path)
-    ap.add_argument("--out", type=Path, default=Path("/tmp/bench_scale_drift"))
-    ap.add_argument("--delta", type=float, default=1.0)
-    ap.add_argument("--lag", type=float, default=1.0)
-    ap.add_argument("--bin", type=float, default=5.0)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog="See the module docstring "
+                                 "(the file's header) for what every figure means.")
+    ap.add_argument("paths", nargs="*", type=Path, metavar="PATH",
+                    help="run folders of `granite run`, or test-bench dataset folders (run here first)")
+    ap.add_argument("--out", type=Path, default=Path("/tmp/bench_scale_drift"),
+                    help="folder of the runs made here, the renders and the plots (default %(default)s)")
+    ap.add_argument("--render", metavar="SCENARIO", action="append", default=[],
+                    help="render this scenario's whole flight into OUT/<scenario>_<w>x<h> first "
+                         "(resumable) and add it to the PATHs; repeatable")
+    ap.add_argument("--width", type=int, default=640, help="--render image width (default 640)")
+    ap.add_argument("--height", type=int, default=480, help="--render image height (default 480)")
+    ap.add_argument("--delta", type=float, default=1.0,
+                    help="time over which the true relative scale error and the RPE are taken [s] (default 1)")
+    ap.add_argument("--lag", type=float, default=1.0,
+                    help="time over which the drift rate differentiates the log scale [s] (default 1)")
+    ap.add_argument("--bin", type=float, default=5.0,
+                    help="bin length of the binned Spearman correlation ρ(bins) [s] (default 5)")
+    ap.add_argument("--align-frames", type=int, default=100,
+                    help="Sim(3) alignment on the first N poses of each sub-map for the scale error "
+                         "and the fixed-scale RPE (paper Fig. 4: 100; 0: all poses)")
     ap.add_argument("--min-motion", type=float, default=0.1,
                     help="true motion over --delta below which a pair gives no scale (m)")
-    ap.add_argument("--plot", action="store_true")
-    ap.add_argument("--cost", default=None)
+    ap.add_argument("--plot", action="store_true", help="write OUT/<run>_scale_drift.png (Fig. 4 style)")
+    ap.add_argument("--cost", default=None, metavar="DATASET",
+                    help="time the indicator per frame on this dataset (sequential VO in process)")
     ap.add_argument("--exclude-scale-fix", action="store_true",
                     help="datasets run here leave the scale fix out of Λ while it is in the window "
                          "(the reference's choice; runs go to DIR/<name>_no_scale_fix)")
     ap.add_argument("--config", type=Path, default=None,
                     help="configuration for the datasets run here (runs go to DIR/<name>_<stem>)")
     args = ap.parse_args(argv)
+    if args.align_frames != 0 and args.align_frames < 3:
+        print("error: --align-frames must be 0 (all poses) or at least 3", file=sys.stderr)
+        return 2
     if args.config is not None:
         from granite.errors import ConfigError
         from granite.estimator.config import VoConfig
@@ -264,11 +303,21 @@ def main(argv=None) -> int:
         except ConfigError as error:
             print(f"error: {error}", file=sys.stderr)
             return 2
+    for scenario in args.render:
+        dataset = args.out / f"{Path(scenario).stem}_{args.width}x{args.height}"
+        command = ["granite-sim", "render", scenario, "--out", str(dataset),
+                   "--width", str(args.width), "--height", str(args.height)]
+        print("$", " ".join(command), flush=True)
+        if subprocess.run(command).returncode != 0:
+            print(f"error: rendering {scenario} failed (see above)", file=sys.stderr)
+            return 2
+        args.paths.append(dataset)
     args.out.mkdir(parents=True, exist_ok=True)
     results = []
     for path in args.paths:
         results.append(analyse(_run_folder(path, args.out, args.exclude_scale_fix, args.config), args.delta,
-                               args.lag, args.bin, args.out if args.plot else None, args.min_motion))
+                               args.lag, args.bin, args.out if args.plot else None, args.min_motion,
+                               args.align_frames or None))
     fmt = lambda x, p=3: "  n/a" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{p}f}"  # noqa: E731
     if results:
         print(f"\nΔ = {args.delta:g} s (true motion >= {args.min_motion:g} m), lag = {args.lag:g} s, "
@@ -288,6 +337,12 @@ def main(argv=None) -> int:
             ages = f"{fmt(k['oldest_keyframe_age_max_s'], 1)} / {fmt(k['oldest_keyframe_age_median_s'], 1)}"
             print(f"{Path(r['run']).name[:34]:34s} {k['keyframes']:9d} {fmt(k['longest_keyframe_gap_s'], 1):>15s} "
                   f"{ages:>31s}")
+        aligned = "all poses" if args.align_frames == 0 else f"first {args.align_frames} poses"
+        print(f"\n{'run':34s} {'RMS scale error':>15s} {'RMS RPE fixed scale':>19s} {'RMS RPE Eq. 18-20':>17s}"
+              f"   (Sim(3) on the {aligned}; Δ = {args.delta:g} s)")
+        for r in results:
+            print(f"{Path(r['run']).name[:34]:34s} {fmt(r['rms_scale_error'], 4):>15s} "
+                  f"{fmt(r['rpe_fixed_scale_rmse'], 4):>19s} {fmt(r['rpe_rmse'], 4):>17s}")
     if len(results) >= 2:
         for key, label in (("eq17", "Eq. 17"), ("ref", "reference variant")):
             pairs = [(r[key]["median"], r["rms_drift_rate"]) for r in results

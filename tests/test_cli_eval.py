@@ -166,6 +166,24 @@ def test_bad_delta_is_a_usage_error(capsys, files) -> None:
     assert "positive number of seconds" in err and err.count("\n") == 1
 
 
+def test_align_frames_and_the_fixed_scale_rpe(capsys, files) -> None:
+    """The half-scale copy aligned on each sub-map's first 100 poses (sub-map 1 has 81: all of
+    them) is exact, and so is its RPE with the alignment scale; a length error would show."""
+    code, out, err = run_cli(capsys, "--est", files["est"], "--gt", files["gt"], "--json", "--align-frames", "100")
+    assert code == 0 and err == ""
+    result = json.loads(out)
+    assert result["align_frames"] == 100 and result["submap_scales"] == {"0": pytest.approx(2.0), "1": pytest.approx(2.0)}
+    assert result["ate_rmse"] < 1e-9 and result["rpe_fixed_scale_rmse"] < 1e-9
+    assert result["num_rpe_fixed_scale_pairs"] == result["num_rpe_pairs"]
+    code, out, _ = run_cli(capsys, "--est", files["est"], "--gt", files["gt"], "--align-frames", "100")
+    assert "aligned on the first 100 poses" in out and "RPE RMSE, fixed scale" in out
+    with pytest.raises(SystemExit) as info:
+        main(["eval", "--est", str(files["est"]), "--gt", str(files["gt"]), "--align-frames", "2"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "at least 3 poses" in err and err.count("\n") == 1
+
+
 @pytest.mark.slow
 def test_subprocess_error_has_no_traceback(tmp_path, files) -> None:
     bad = tmp_path / "bad.tum"

@@ -343,3 +343,67 @@ def test_collinear_path_is_aligned_with_orientations() -> None:
 def rot_z(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+# --------------------------------------------------------------------------- Fig. 4 evaluation
+
+
+def drifting_estimate(seed: int, jump: int, factor: float):
+    """Ground truth (smooth 3-D motion, 20 Hz) and an estimate that is its similarity copy
+    (world x -> s R0 x + t0) whose steps after pose ``jump`` are ``factor`` times longer."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(300) * 0.05
+    R, p = smooth_motion(rng, t)
+    gt = make_poses(R, p)
+    steps = np.diff(p, axis=0) * np.where(np.arange(1, len(t)) <= jump, 1.0, factor)[:, None]
+    drifted = make_poses(R, np.vstack([p[:1], p[0] + np.cumsum(steps, axis=0)]))
+    s, R0, t0 = 0.3, rot(seed), rng.normal(size=3)
+    return Trajectory(t, gt), Trajectory(t, sim3_transform(drifted, s, R0, t0)), p, s
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_alignment_on_the_first_frames_keeps_the_drift_after_them(seed: int) -> None:
+    """Aligned on the first 100 poses (exact up to the similarity), the estimate is exact there
+    and off by 25 % of the true distance from pose 100 afterwards; a fit on all poses spreads
+    that error over the whole flight and changes the scale."""
+    gt, est, p, s = drifting_estimate(seed, jump=100, factor=1.25)
+    first = ate(est, gt, "sim3", align_frames=100)
+    assert first.scales[0] == pytest.approx(1 / s, rel=1e-9)
+    expected = np.r_[np.zeros(100), 0.25 * np.linalg.norm(p[100:] - p[100], axis=1)]
+    np.testing.assert_allclose(first.errors, expected, atol=1e-9)
+    whole = ate(est, gt, "sim3")
+    assert whole.errors[:100].max() > 1e-3 and abs(whole.scales[0] * s - 1) > 1e-3
+    with pytest.raises(ValueError, match="at least 3"):
+        ate(est, gt, "sim3", align_frames=2)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_rpe_with_the_alignment_scale_counts_the_scale_drift_that_eq19_hides(seed: int) -> None:
+    gt, est, p, s = drifting_estimate(seed, jump=100, factor=1.25)
+    scales = ate(est, gt, "sim3", align_frames=100).scales
+    eq19 = rpe(est, gt, 1.0)
+    fixed = rpe(est, gt, 1.0, fixed_scales=scales)
+    assert fixed.fixed_scale and not eq19.fixed_scale
+    np.testing.assert_array_equal(fixed.timestamps, est.timestamps[20:])  # static pairs kept
+    after = fixed.timestamps >= 120 * 0.05 - 1e-9  # both ends past the jump
+    before = fixed.timestamps <= 100 * 0.05 + 1e-9
+    k = np.flatnonzero(after) + 20
+    np.testing.assert_allclose(fixed.errors[after], 0.25 * np.linalg.norm(p[k] - p[k - 20], axis=1), rtol=1e-9)
+    np.testing.assert_allclose(fixed.errors[before], 0.0, atol=1e-9)
+    np.testing.assert_array_equal(eq19.timestamps, fixed.timestamps)
+    # each pair rescaled: nothing is left of the drift but the bend of the pairs across the jump
+    np.testing.assert_allclose(eq19.errors[before | after], 0.0, atol=1e-9)
+    assert eq19.rmse < 0.2 * fixed.rmse
+    assert fixed.rmse > 0.1
+    unaligned = rpe(est, gt, 1.0, fixed_scales={})
+    assert unaligned.num_pairs == 0 and unaligned.skipped_unaligned == 280 and math.isnan(unaligned.rmse)
+
+
+def test_evaluate_reports_the_fixed_scale_rpe_and_the_alignment_window() -> None:
+    gt, est, p, s = drifting_estimate(5, jump=100, factor=1.25)
+    d = evaluate(est, gt, 1.0, "sim3", align_frames=100).to_dict()
+    assert d["align_frames"] == 100
+    assert d["rpe_rmse"] < 0.2 * d["rpe_fixed_scale_rmse"]
+    assert d["rpe_fixed_scale_rmse"] == pytest.approx(rpe(est, gt, 1.0, fixed_scales={0: 1 / s}).rmse, rel=1e-9)
+    assert d["num_rpe_fixed_scale_pairs"] == 280
+    assert evaluate(est, gt, 1.0, "sim3").to_dict()["align_frames"] is None

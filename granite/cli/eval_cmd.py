@@ -19,6 +19,10 @@ Evaluate an estimated trajectory against the ground truth, as in the paper (Sec.
   RPE    RMS of the scale-free relative pose error over DELTA seconds (paper Eq. 18-20):
          only the direction of each relative motion counts; the first DELTA seconds and
          pairs spanning two sub-maps are excluded.
+  RPE with fixed scale
+         the same pairs with every relative motion scaled by its sub-map's ATE alignment
+         scale instead of its own ratio (Eq. 19): errors of length, i.e. scale drift, count.
+         With --align-frames 100 the scale is the one of the first 100 poses (paper Fig. 4).
   tracking percentage
          longest continuously tracked section (one sub-map) / estimate duration.
   restarts
@@ -45,7 +49,9 @@ file formats:
 examples:
   granite eval --est runs/demo/run --gt runs/demo/dataset/groundtruth.tum
   granite eval --est traj.tum --gt mav0/state_groundtruth_estimate0/data.csv \\
-               --calib calib.json --delta 4 --json     # Δ = 4 s: the paper's MADMAX setting"""
+               --calib calib.json --delta 4 --json     # Δ = 4 s: the paper's MADMAX setting
+  granite eval --est runs/spiral --gt spiral/groundtruth.tum --align-frames 100
+                                                       # aligned on the first 100 poses (Fig. 4)"""
 
 
 def positive_seconds(text: str) -> float:
@@ -56,6 +62,17 @@ def positive_seconds(text: str) -> float:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a positive number of seconds: {text!r}")
+    return value
+
+
+def align_frame_count(text: str) -> int:
+    """argparse type: an integer number of poses, at least 3 (a similarity needs 3)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 3:
+        raise argparse.ArgumentTypeError(f"must be at least 3 poses: {text!r}")
     return value
 
 
@@ -79,6 +96,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                              "every granite command; the paper used 4 for 1 Hz ground truth)")
     parser.add_argument("--align", choices=("sim3", "se3", "none"), default="sim3",
                         help="ATE alignment per sub-map (default: sim3)")
+    parser.add_argument("--align-frames", type=align_frame_count, default=None, metavar="N",
+                        help="estimate each sub-map's alignment from its first N poses only and "
+                             "apply it to the whole sub-map (paper Fig. 4: 100; at least 3; "
+                             "default: all poses)")
     parser.add_argument("--calib", type=Path, metavar="CALIB",
                         help="Basalt calib.json whose T_imu_cam converts EuRoC body ground "
                              "truth to camera poses (ignored for TUM ground truth)")
@@ -100,7 +121,9 @@ def format_table(result: dict[str, Any], est: Path, gt: Path) -> str:
         ("estimate", f"{est} ({r['num_poses']} poses, {r['restarts'] + 1} sub-map runs)"),
         ("ground truth", str(gt)),
         ("sub-maps from", r.get("submaps_source", "-")),
-        (f"ATE RMSE ({r['align']}, per sub-map)", _fmt(r["ate_rmse"], " m")),
+        (f"ATE RMSE ({r['align']}, per sub-map"
+         + ("" if r.get("align_frames") is None else f", aligned on the first {r['align_frames']} poses")
+         + ")", _fmt(r["ate_rmse"], " m")),
         ("ATE mean / median / max",
          f"{_fmt(r['ate_mean'])} / {_fmt(r['ate_median'])} / {_fmt(r['ate_max'])} m"),
         ("ATE poses", str(r["num_ate_poses"])),
@@ -108,6 +131,9 @@ def format_table(result: dict[str, Any], est: Path, gt: Path) -> str:
         ("RPE pairs", f"{r['num_rpe_pairs']} (skipped: {r['rpe_skipped_static']} static, "
                       f"{r['rpe_skipped_submap']} across sub-maps, "
                       f"{r['rpe_skipped_no_gt']} outside ground truth)"),
+        (f"RPE RMSE, fixed scale (delta {r['delta']:g} s)",
+         f"{_fmt(r['rpe_fixed_scale_rmse'], ' m')} ({r['num_rpe_fixed_scale_pairs']} pairs, each sub-map's "
+         "alignment scale)"),
         ("tracking percentage", f"{r['tracking_percentage']:.1f} %"),
         ("restarts", str(r["restarts"])),
         ("initialisation delay", "n/a (no diagnostics.csv)" if "init_delay_frames" not in r else
@@ -130,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     est, source = read_estimate(args.est, args.submaps)
     gt = read_trajectory(args.gt, T_body_cam)
     try:
-        result = evaluate(est, gt, delta=args.delta, align=args.align).to_dict()
+        result = evaluate(est, gt, delta=args.delta, align=args.align, align_frames=args.align_frames).to_dict()
     except InputError as error:
         if error.path is None:  # name the estimate in errors of the pure algorithms
             raise InputError(error.message, args.est) from None

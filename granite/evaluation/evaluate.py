@@ -1,4 +1,5 @@
-"""All metrics of one run: ATE, RPE (paper Eq. 18-20), tracking percentage and restarts."""
+"""All metrics of one run: ATE, RPE (paper Eq. 18-20), the RPE with the alignment's fixed
+scale, tracking percentage and restarts."""
 
 from __future__ import annotations
 
@@ -43,6 +44,8 @@ class EvaluationResult:
     restarts: int
     num_poses: int
     path_length: float
+    rpe_fixed_scale: RpeResult | None = None
+    align_frames: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Flat dictionary; undefined values (no RPE pair, zero path length) are ``None``."""
@@ -66,6 +69,9 @@ class EvaluationResult:
                 _num(a.rmse / self.path_length) if self.path_length > 0 else None
             ),
             "align": a.align,
+            "align_frames": self.align_frames,
+            "rpe_fixed_scale_rmse": None if self.rpe_fixed_scale is None else _num(self.rpe_fixed_scale.rmse),
+            "num_rpe_fixed_scale_pairs": 0 if self.rpe_fixed_scale is None else self.rpe_fixed_scale.num_pairs,
             "delta": r.delta,
             "submap_scales": {str(k): v for k, v in a.scales.items()},
             "skipped_submaps": {str(k): v for k, v in a.skipped_submaps.items()},
@@ -73,15 +79,20 @@ class EvaluationResult:
 
 
 def evaluate(
-    est: Trajectory, gt: Trajectory, delta: float = DEFAULT_RPE_DELTA, align: str = "sim3"
+    est: Trajectory, gt: Trajectory, delta: float = DEFAULT_RPE_DELTA, align: str = "sim3",
+    align_frames: int | None = None,
 ) -> EvaluationResult:
-    """ATE (``align`` per sub-map), RPE over ``delta`` s, tracking percentage (over the
-    estimate's time span), restart count, and the ground-truth path length over the overlap."""
+    """ATE (``align`` per sub-map, estimated from all poses of a sub-map or its first
+    ``align_frames``), RPE over ``delta`` s (Eq. 18-20, and with each sub-map's alignment
+    scale fixed: scale drift counts), tracking percentage (over the estimate's time span),
+    restart count, and the ground-truth path length over the overlap."""
     check_nonempty(est, gt)
-    ate_result = ate(est, gt, align)
+    ate_result = ate(est, gt, align, align_frames)
     return EvaluationResult(
         ate=ate_result,
         rpe=rpe(est, gt, delta),
+        rpe_fixed_scale=rpe(est, gt, delta, fixed_scales=ate_result.scales),
+        align_frames=align_frames,
         tracking_percentage=tracking_percentage(est),
         restarts=restart_count(est),
         num_poses=len(est),

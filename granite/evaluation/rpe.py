@@ -25,6 +25,13 @@ Choices where the paper is silent (each counted in the result):
   skipped (``skipped_static``).
 * timestamps within 1 us of a boundary (``t_first + delta``, run start, ground-truth span)
   count as on it.
+
+**With a fixed scale** (``fixed_scales``: sub-map index -> scale, e.g. the Sim(3) alignment's
+from :func:`granite.evaluation.ate` on the first 100 frames, as the paper's Fig. 4): ``s_t`` of
+Eq. 19 is replaced by the pair's sub-map scale, so Eq. 20 also counts errors of the length of
+each relative motion, i.e. scale drift, which the per-pair ``s_t`` hides. Static pairs are
+kept (there is no ratio to take); pairs of a sub-map without a scale are counted in
+``skipped_unaligned``.
 """
 
 from __future__ import annotations
@@ -48,7 +55,9 @@ class RpeResult:
         errors: ``(K,)`` ``|s_t trans(dT_t) - trans(dQ_t)|`` per evaluated pair.
         timestamps: ``(K,)`` the ``t`` of each pair.
         scales: ``(K,)`` ``s_t``.
-        skipped_static, skipped_submap, skipped_no_gt: pairs left out (module docstring).
+        skipped_static, skipped_submap, skipped_no_gt, skipped_unaligned: pairs left out
+            (module docstring).
+        fixed_scale: whether ``scales`` are the given per-sub-map scales (not Eq. 19).
     """
 
     delta: float
@@ -59,6 +68,8 @@ class RpeResult:
     skipped_static: int
     skipped_submap: int
     skipped_no_gt: int
+    skipped_unaligned: int = 0
+    fixed_scale: bool = False
 
     @property
     def num_pairs(self) -> int:
@@ -85,8 +96,10 @@ def _extent(positions: np.ndarray) -> float:
 DEFAULT_RPE_DELTA = 1.0
 
 
-def rpe(est: Trajectory, gt: Trajectory, delta: float = DEFAULT_RPE_DELTA, rel_eps: float = 1e-9) -> RpeResult:
-    """RMS RPE of ``est`` against ``gt`` over ``delta`` seconds (paper Eq. 18-20)."""
+def rpe(est: Trajectory, gt: Trajectory, delta: float = DEFAULT_RPE_DELTA, rel_eps: float = 1e-9,
+        fixed_scales: dict[int, float] | None = None) -> RpeResult:
+    """RMS RPE of ``est`` against ``gt`` over ``delta`` seconds (paper Eq. 18-20), or with
+    the per-sub-map ``fixed_scales`` in place of Eq. 19 (module docstring)."""
     if not (np.isfinite(delta) and delta > 0):
         raise ValueError(f"delta must be a positive number of seconds, got {delta!r}")
     check_nonempty(est, gt)
@@ -120,17 +133,25 @@ def rpe(est: Trajectory, gt: Trajectory, delta: float = DEFAULT_RPE_DELTA, rel_e
     if not cur_idx:
         empty = np.zeros(0)
         return RpeResult(float(delta), float("nan"), empty, empty, empty, 0,
-                         skipped_submap, skipped_no_gt)
+                         skipped_submap, skipped_no_gt, 0, fixed_scales is not None)
     idx = np.concatenate(cur_idx)
     t_cur = ts[idx]
     d_est = _relative_translations(np.concatenate(T_prev), est.poses[idx])
     Q_cur = interpolate_poses(gt.timestamps, gt.poses, np.clip(t_cur, g0, g1))
     Q_prev = interpolate_poses(gt.timestamps, gt.poses, np.clip(np.concatenate(prev_t), g0, g1))
     d_gt = _relative_translations(Q_prev, Q_cur)
-    n_est = np.linalg.norm(d_est, axis=1)
-    n_gt = np.linalg.norm(d_gt, axis=1)
-    valid = (n_est > np.concatenate(est_eps)) & (n_gt > rel_eps * _extent(gt.positions))
-    s = n_gt[valid] / n_est[valid]
+    skipped_unaligned = 0
+    if fixed_scales is None:
+        n_est = np.linalg.norm(d_est, axis=1)
+        n_gt = np.linalg.norm(d_gt, axis=1)
+        valid = (n_est > np.concatenate(est_eps)) & (n_gt > rel_eps * _extent(gt.positions))
+        s = n_gt[valid] / n_est[valid]
+        skipped_static = int(np.count_nonzero(~valid))
+    else:
+        scale_of = np.array([fixed_scales.get(int(k), np.nan) for k in est.submap_ids()[idx]], dtype=np.float64)
+        valid = np.isfinite(scale_of)
+        s = scale_of[valid]
+        skipped_static, skipped_unaligned = 0, int(np.count_nonzero(~valid))
     errors = np.linalg.norm(s[:, None] * d_est[valid] - d_gt[valid], axis=1)
     rmse = float(np.sqrt(np.mean(errors**2))) if errors.size else float("nan")
     return RpeResult(
@@ -139,7 +160,9 @@ def rpe(est: Trajectory, gt: Trajectory, delta: float = DEFAULT_RPE_DELTA, rel_e
         errors=errors,
         timestamps=t_cur[valid],
         scales=s,
-        skipped_static=int(np.count_nonzero(~valid)),
+        skipped_static=skipped_static,
         skipped_submap=skipped_submap,
         skipped_no_gt=skipped_no_gt,
+        skipped_unaligned=skipped_unaligned,
+        fixed_scale=fixed_scales is not None,
     )

@@ -289,6 +289,8 @@ def _metrics_table(evaluation: dict) -> list[str]:
     rows = [("ATE RMSE (Sim(3) per sub-map)", evaluation.get("ate_rmse"), "m"),
             ("ATE / path length", evaluation.get("ate_over_path_length"), "%"),
             (f"RMS RPE (Δ = {evaluation.get('delta', float('nan')):g} s, Eq. 18-20)", evaluation.get("rpe_rmse"), "m"),
+            ("RMS RPE with the alignment's fixed scale (scale drift counts)",
+             evaluation.get("rpe_fixed_scale_rmse"), "m"),
             ("tracking percentage", evaluation.get("tracking_percentage"), "%t"),
             ("restarts", evaluation.get("restarts"), ""),
             ("path length (ground truth)", evaluation.get("path_length"), "m"),
