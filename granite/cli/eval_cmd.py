@@ -65,15 +65,17 @@ def positive_seconds(text: str) -> float:
     return value
 
 
-def align_frame_count(text: str) -> int:
-    """argparse type: an integer number of poses, at least 3 (a similarity needs 3)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 3:
-        raise argparse.ArgumentTypeError(f"must be at least 3 poses: {text!r}")
-    return value
+def int_at_least(minimum: int, unit: str = ""):
+    """argparse type: an integer of at least ``minimum`` (``unit`` names it in the error)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}{unit}: {text!r}")
+        return value
+    return parse
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -96,7 +98,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                              "every granite command; the paper used 4 for 1 Hz ground truth)")
     parser.add_argument("--align", choices=("sim3", "se3", "none"), default="sim3",
                         help="ATE alignment per sub-map (default: sim3)")
-    parser.add_argument("--align-frames", type=align_frame_count, default=None, metavar="N",
+    parser.add_argument("--align-frames", type=int_at_least(3, " poses"), default=None, metavar="N",
                         help="estimate each sub-map's alignment from its first N poses only and "
                              "apply it to the whole sub-map (paper Fig. 4: 100; at least 3; "
                              "default: all poses)")

@@ -8,7 +8,7 @@ import json
 import sys
 from pathlib import Path
 
-from granite.cli.eval_cmd import positive_seconds
+from granite.cli.eval_cmd import int_at_least, positive_seconds
 from granite.errors import GraniteError
 from granite.estimator.config import VoConfig
 from granite.estimator.records import FrameRecord, RecordWriter, write_records
@@ -45,15 +45,7 @@ status 2 before any work; Ctrl-C writes the frames processed so far and exits wi
 """
 
 
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1: {text!r}")
-    return value
+positive_int = int_at_least(1)
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
