@@ -39,6 +39,7 @@ def serial_results(tmp_path_factory) -> list[dict]:
     assert not failed and len(rows) == 4 and all(r["status"] == "ok" for r in rows)
     results = read_results(out / "results.csv", timing=False)
     assert results and not set(TIMING_COLUMNS) & set(results[0])
+    assert all(float(r["rpe_fixed_scale_rmse"]) > 0 for r in results)  # the fixed-scale RPE of each run
     return results
 
 
@@ -50,6 +51,7 @@ def _check_outputs(out: Path) -> None:
             assert (out / "runs" / seq / variant / "trajectory.tum").is_file()
     report = (out / "report.md").read_text()
     assert "Table I: failures" in report and "Table II: RMS RPE" in report
+    assert "alignment scale fixed (scale drift counts)" in report
 
 
 def test_local_cluster_equals_serial(serial_results, tmp_path, capsys):

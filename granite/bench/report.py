@@ -93,6 +93,9 @@ def report_markdown(study: Study, rows: list[dict], plots: dict[str, str]) -> st
     lines += _table(study, by, f"Table II: RMS RPE (Δ = {d} s) [m]",
                     lambda r: _fmt(r.get("rpe_rmse")) if _ok(r) else "n/a", "mean",
                     lambda rs: _fmt(_mean(r.get("rpe_rmse") for r in rs if _ok(r))))
+    lines += _table(study, by, f"RMS RPE (Δ = {d} s) with each sub-map's alignment scale fixed (scale drift counts) [m]",
+                    lambda r: _fmt(r.get("rpe_fixed_scale_rmse")) if _ok(r) else "n/a", "mean",
+                    lambda rs: _fmt(_mean(r.get("rpe_fixed_scale_rmse") for r in rs if _ok(r))))
     lines += _table(study, by, "ATE / path length",
                     lambda r: _fmt(r.get("ate_over_path_length"), 2, 100, " %") if _ok(r) else "n/a", "mean",
                     lambda rs: _fmt(_mean(r.get("ate_over_path_length") for r in rs if _ok(r)), 2, 100, " %"))

@@ -32,7 +32,7 @@ from granite.io import atomic_write_text
 RESULT_COLUMNS = (
     "sequence", "scenario", "seed", "frames", "variant", "status", "images", "estimated_frames",
     "restarts", "tracking_percentage", "init_delay_frames", "init_delay_s", "rpe_rmse", "ate_rmse",
-    "ate_over_path_length", "path_length", "num_rpe_pairs", "lambda_defined_percentage",
+    "ate_over_path_length", "path_length", "num_rpe_pairs", "rpe_fixed_scale_rmse", "lambda_defined_percentage",
     "lambda_median", "lambda_ref_median", "vo_fps", "vo_wall_s",
 )
 TIMING_COLUMNS = ("vo_fps", "vo_wall_s")
@@ -204,7 +204,7 @@ def evaluate_run(out: Path, seq: Sequence, variant: Variant, delta: float, align
     else:
         row["status"] = "ok"
         for key in ("restarts", "tracking_percentage", "rpe_rmse", "ate_rmse", "ate_over_path_length",
-                    "path_length", "num_rpe_pairs"):
+                    "path_length", "num_rpe_pairs", "rpe_fixed_scale_rmse"):
             row[key] = ev[key]
         row["init_delay_frames"] = init.get("init_delay_frames")
         row["init_delay_s"] = init.get("init_delay_s")
