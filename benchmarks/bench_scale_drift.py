@@ -6,8 +6,9 @@
     python benchmarks/bench_scale_drift.py --render spiral [--width 640 --height 480] --out DIR --plot
 
 --render SCENARIO renders that scenario's whole flight with ``granite-sim render`` (at
-``--width`` x ``--height``, default 640x480, the sensor model on) into DIR/<scenario>_<w>x<h>
-first (resumable: finished frames are kept) and adds it to the PATHs: the full 60 s ``spiral``
+``--width`` x ``--height``, default 640x480, the sensor model on) into
+DIR/renders/<scenario>_<w>x<h> first (resumable: finished frames are kept) and adds it to the
+PATHs (its run goes to DIR/<scenario>_<w>x<h>): the full 60 s ``spiral``
 (1201 frames) takes about 20-45 min of CPU on 2 cores.
 
 PATH is a run folder of `granite run` (diagnostics.csv with the scale_drift_indicator columns;
@@ -268,7 +269,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_scale_drift"),
                     help="folder of the runs made here, the renders and the plots (default %(default)s)")
     ap.add_argument("--render", metavar="SCENARIO", action="append", default=[],
-                    help="render this scenario's whole flight into OUT/<scenario>_<w>x<h> first "
+                    help="render this scenario's whole flight into OUT/renders/<scenario>_<w>x<h> first "
                          "(resumable) and add it to the PATHs; repeatable")
     ap.add_argument("--width", type=int, default=640, help="--render image width (default 640)")
     ap.add_argument("--height", type=int, default=480, help="--render image height (default 480)")
@@ -304,10 +305,10 @@ def main(argv=None) -> int:
             print(f"error: {error}", file=sys.stderr)
             return 2
     for scenario in args.render:
-        dataset = args.out / f"{Path(scenario).stem}_{args.width}x{args.height}"
-        command = ["granite-sim", "render", scenario, "--out", str(dataset),
+        dataset = args.out / "renders" / f"{Path(scenario).stem}_{args.width}x{args.height}"
+        command = [sys.executable, "-m", "simulation.cli", "render", scenario, "--out", str(dataset),
                    "--width", str(args.width), "--height", str(args.height)]
-        print("$", " ".join(command), flush=True)
+        print("$ granite-sim", " ".join(command[3:]), flush=True)
         if subprocess.run(command).returncode != 0:
             print(f"error: rendering {scenario} failed (see above)", file=sys.stderr)
             return 2
