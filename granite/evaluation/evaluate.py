@@ -40,11 +40,11 @@ class EvaluationResult:
 
     ate: AteResult
     rpe: RpeResult
+    rpe_fixed_scale: RpeResult
     tracking_percentage: float
     restarts: int
     num_poses: int
     path_length: float
-    rpe_fixed_scale: RpeResult | None = None
     align_frames: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -70,8 +70,8 @@ class EvaluationResult:
             ),
             "align": a.align,
             "align_frames": self.align_frames,
-            "rpe_fixed_scale_rmse": None if self.rpe_fixed_scale is None else _num(self.rpe_fixed_scale.rmse),
-            "num_rpe_fixed_scale_pairs": 0 if self.rpe_fixed_scale is None else self.rpe_fixed_scale.num_pairs,
+            "rpe_fixed_scale_rmse": _num(self.rpe_fixed_scale.rmse),
+            "num_rpe_fixed_scale_pairs": self.rpe_fixed_scale.num_pairs,
             "delta": r.delta,
             "submap_scales": {str(k): v for k, v in a.scales.items()},
             "skipped_submaps": {str(k): v for k, v in a.skipped_submaps.items()},
