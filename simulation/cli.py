@@ -19,6 +19,7 @@ import sys
 import tomllib
 from collections.abc import Sequence
 
+from granite.cli.main import OneLineErrorParser
 from granite.errors import GraniteError
 from simulation.scenario import SCENARIO_DIR, load_scenario, with_overrides
 
@@ -34,7 +35,7 @@ def _positive_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrorParser(
         prog="granite-sim",
         description="Blender Mars test-bench: reproducible flights with exact ground truth.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -113,15 +114,17 @@ def cmd_view(args: argparse.Namespace) -> int:
 
     from granite.io import open_dataset
     from granite.visualization.dataset_view import log_dataset
+    from granite.visualization.rerun_logger import recording_path
     from simulation.depth import depth_reader
 
     dataset = open_dataset(args.dataset)
-    rrd = None if args.spawn else Path(args.rerun or Path(args.dataset) / "dataset.rrd")
+    rrd = recording_path(args.rerun, args.spawn, Path(args.dataset) / "dataset.rrd")
     depth_of = None if args.no_depth else depth_reader(dataset)
     counts = log_dataset(
         dataset, rrd, args.spawn, depth_of,
         progress=lambda frames: tqdm(frames, total=len(dataset), unit="frame", desc=dataset.name,
-                                     disable=args.quiet, dynamic_ncols=True))
+                                     disable=args.quiet, dynamic_ncols=True),
+        warn=lambda text: tqdm.write(f"granite-sim view: warning: {text}", file=sys.stderr))
     where = f"recording: {rrd}" if rrd else "streamed to the viewer"
     print(f"{dataset.name}: {counts['frames']} frames, {counts['images']} images, "
           f"{counts['poses']} ground-truth poses, {counts['depth_maps']} depth maps; {where}")
@@ -141,8 +144,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"granite-sim {args.command}: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"granite-sim {args.command}: interrupted (finished frames are kept; run the "
-              "same command again to resume)", file=sys.stderr)
+        kept = ("no recording written" if args.command == "view" else
+                "finished frames are kept; run the same command again to resume")
+        print(f"granite-sim {args.command}: interrupted ({kept})", file=sys.stderr)
         return 130
 
 

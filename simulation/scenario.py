@@ -380,8 +380,8 @@ def with_overrides(s: Scenario, width: int | None = None, height: int | None = N
         return ConfigError(f"command line: {message}")
 
     if width is not None or height is not None:
-        w = _check_value(width or cam.width, int, {"lo": 16, "hi": 8192}, "--width", err)
-        h = _check_value(height or cam.height, int, {"lo": 16, "hi": 8192}, "--height", err)
+        w = _check_value(cam.width if width is None else width, int, {"lo": 16, "hi": 8192}, "--width", err)
+        h = _check_value(cam.height if height is None else height, int, {"lo": 16, "hi": 8192}, "--height", err)
         sx, sy = w / cam.width, h / cam.height
         if cam.model == "kb4" and abs(sx - sy) > 1e-12:
             raise err("the kb4 camera keeps its aspect ratio: --width/--height must scale equally")

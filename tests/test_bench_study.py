@@ -135,6 +135,34 @@ def test_bad_command_lines(tmp_path, capsys):
     assert "TLS needs all of" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("address, message", [
+    ("notanaddr", "expected HOST:PORT or :PORT, got 'notanaddr'"),
+    (":x", "the port must be an integer 0-65535, got 'x'"),
+    ("127.0.0.1:65536", "the port must be an integer 0-65535, got '65536'"),
+])
+def test_bad_dashboard_address_is_one_line(tmp_path, capsys, address, message):
+    with pytest.raises(SystemExit) as info:
+        main(["bench", str(SMOKE), "--out", str(tmp_path / "out"), "--workers", "1", "--dashboard-address", address])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and err.count("\n") == 1
+    assert err.startswith("granite bench: error: argument --dashboard-address: ") and message in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_cluster_that_fails_to_start_is_one_line(tmp_path, capsys, monkeypatch):
+    def fail(workers, dashboard_address):
+        raise RuntimeError("Cluster failed to start: [Errno -2] Name or service not known")
+
+    monkeypatch.setattr("granite.bench.execute.local_cluster", fail)
+    argv = ["bench", str(SMOKE), "--out", str(tmp_path / "out"), "--workers", "1",
+            "--dashboard-address", "nosuchhost.invalid:8787"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err == ("granite bench: error: the local Dask cluster failed to start (dashboard nosuchhost.invalid:8787): "
+                   "Cluster failed to start: [Errno -2] Name or service not known\n")
+    assert not (tmp_path / "out").exists()
+
+
 def test_dry_run_lists_the_runs(tmp_path, capsys):
     assert main(["bench", str(SMOKE), "--out", str(tmp_path), "--dry-run"]) == 0
     out = capsys.readouterr().out

@@ -319,6 +319,20 @@ def test_calibration_invalid_json_and_missing(tmp_path: Path) -> None:
         read_calibration(tmp_path / "none.json")
 
 
+def test_calibration_top_level_not_an_object_is_one_clear_line(tmp_path: Path, capsys) -> None:
+    from granite.cli.main import main
+
+    path = write(tmp_path / "calib.json", "[1]\n")
+    with pytest.raises(InputError, match="top level must be a JSON object"):
+        read_calibration(path)
+    root = tmp_path / "seq"
+    make_euroc(root)
+    assert main(["run", str(root), "--calib", str(path), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{path}: top level must be a JSON object" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
 # --------------------------------------------------------------------------- atomic, images
 
 
@@ -434,6 +448,21 @@ def test_open_euroc_distortion_and_calib_override(tmp_path: Path) -> None:
     assert ds.calibration is None and "'fov'" in ds.notes[0] and ds.undistortion is None
     write_calibration(tmp_path / "my.json", CALIBS[1])
     assert open_dataset(root, calib_path=tmp_path / "my.json").calibration.camera_type == "kb4"
+
+
+def test_pinhole_sensor_yaml_with_three_intrinsics_says_so(tmp_path: Path, capsys) -> None:
+    from granite.cli.main import main
+
+    root = tmp_path / "seq"
+    make_euroc(root)
+    write(root / "mav0/cam0/sensor.yaml", SENSOR_YAML.replace("[4.0, 4.5, 3.5, 2.5]", "[4.0, 4.5, 3.5]"))
+    ds = open_dataset(root)
+    assert ds.calibration is None and "pinhole needs 4 intrinsics [fu, fv, cu, cv], got 3" in ds.notes[0]
+    assert main(["run", str(root), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "needs 4 intrinsics [fu, fv, cu, cv], got 3" in err
+    assert "unsupported camera_model" not in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
 
 
 def test_open_testbench_prefers_root_files(tmp_path: Path) -> None:

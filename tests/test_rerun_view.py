@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -10,8 +11,11 @@ import pytest
 import rerun as rr
 
 from granite.cli.main import main
-from granite.estimator.diagnostics import read_diagnostics
-from granite.io import open_dataset
+from granite.errors import InputError
+from granite.estimator.diagnostics import FrameDiagnostics, read_diagnostics, write_diagnostics
+from granite.estimator.records import FrameRecord, write_records
+from granite.io import open_dataset, write_tum
+from granite.trajectory import Trajectory
 from granite.visualization.colors import INFINITY_COLOR, UNMAPPED_COLOR, inverse_distance_colors
 from granite.visualization.rerun_logger import frustum_wireframes
 from planar_scene import default_flight, write_planar_dataset
@@ -131,3 +135,96 @@ def test_frustum_wireframe_reaches_the_image_corners_at_the_given_depth():
 def test_view_of_missing_run_is_a_clear_error(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nope")]) == 2
     assert "run folder not found" in capsys.readouterr().err
+
+
+def _one_frame_run(root: Path, dataset: Path | str = SEQUENCES / "default") -> Path:
+    """A run folder of ``dataset``'s first frame, written without running the VO."""
+    run_dir = root / "run"
+    run_dir.mkdir(parents=True)
+    (run_dir / "summary.json").write_text(json.dumps({"dataset": str(dataset)}))
+    write_tum(run_dir / "trajectory.tum", Trajectory(np.zeros(1), np.eye(4)[None]))
+    write_diagnostics(run_dir / "diagnostics.csv", [FrameDiagnostics(0.0, 0, 0, "init")])
+    write_records(run_dir / "landmarks.npz", [FrameRecord(0, 0.0)])
+    return run_dir
+
+
+def _one_error_line(capsys, *words: str) -> str:
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("granite view: error: ") and "Traceback" not in err, err
+    assert all(w in err for w in words), err
+    return err
+
+
+def test_view_of_a_one_frame_run_writes_only_the_recording(tmp_path):
+    run_dir = _one_frame_run(tmp_path)
+    before = {p.name for p in run_dir.iterdir()}
+    assert main(["view", str(run_dir)]) == 0
+    assert {p.name for p in run_dir.iterdir()} - before == {"recording.rrd"}  # no temporary file left
+
+
+def test_view_of_landmarks_that_are_not_a_zip_is_one_line(tmp_path, capsys):
+    run_dir = _one_frame_run(tmp_path)
+    records = run_dir / "landmarks.npz"
+    records.write_bytes(records.read_bytes()[:100])
+    assert main(["view", str(run_dir)]) == 2
+    _one_error_line(capsys, str(records), "not a granite run records file")
+    assert not (run_dir / "recording.rrd").exists()
+
+
+@pytest.mark.parametrize("summary, words", [
+    ([1, 2], ("summary.json: top level must be a JSON object",)),
+    ({"dataset": 5}, ("summary.json", '"dataset" must be a folder path', "got 5", "--dataset")),
+    ({"frames": 1}, ("summary.json", '"dataset" must be a folder path', "got None")),
+])
+def test_view_of_a_bad_summary_is_one_line(tmp_path, capsys, summary, words):
+    run_dir = _one_frame_run(tmp_path)
+    (run_dir / "summary.json").write_text(json.dumps(summary))
+    assert main(["view", str(run_dir)]) == 2
+    _one_error_line(capsys, *words)
+    assert not (run_dir / "recording.rrd").exists()
+
+
+def test_view_says_the_missing_dataset_came_from_summary_json(tmp_path, capsys, monkeypatch):
+    run_dir = _one_frame_run(tmp_path / "runs", dataset="gone/default")
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    assert main(["view", str(run_dir)]) == 2
+    _one_error_line(capsys, f"{run_dir / 'summary.json'}: dataset folder 'gone/default'",
+                    str(tmp_path / "elsewhere" / "gone" / "default"),  # the current folder first,
+                    str(tmp_path / "runs" / "gone" / "default"), "--dataset")  # then beside the run
+
+
+def test_view_finds_a_relative_dataset_beside_the_run_folder(tmp_path, monkeypatch):
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "runs" / "ds").symlink_to(SEQUENCES / "default")
+    run_dir = _one_frame_run(tmp_path / "runs", dataset="ds")
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    assert main(["view", str(run_dir)]) == 0
+
+
+def test_view_that_fails_while_logging_leaves_no_recording(tmp_path, capsys, monkeypatch):
+    from granite.visualization.run_view import RunView
+
+    def fail(view, trajectory):
+        raise InputError("simulated failure")
+
+    run_dir = _one_frame_run(tmp_path)
+    before = {p.name for p in run_dir.iterdir()}
+    monkeypatch.setattr(RunView, "finish", fail)
+    assert main(["view", str(run_dir)]) == 2
+    _one_error_line(capsys, "simulated failure")
+    assert {p.name for p in run_dir.iterdir()} == before  # neither recording.rrd nor a temporary file
+
+
+def test_run_that_fails_leaves_no_recording(tmp_path, capsys, monkeypatch):
+    def fail(*args, **kwargs):
+        raise InputError("simulated failure")
+
+    monkeypatch.setattr("granite.cli.run_cmd.run_vo", fail)
+    rrd = tmp_path / "recordings" / "live.rrd"
+    argv = ["run", str(SEQUENCES / "default"), "--out", str(tmp_path / "out"), "--rerun", str(rrd), "--quiet"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "simulated failure" in err
+    assert not rrd.parent.exists() or not any(rrd.parent.iterdir())

@@ -232,6 +232,16 @@ def test_bad_options_are_one_line(tmp_path, capsys):
         assert info.value.code == 2 and err.count("\n") == 1 and "granite run: error:" in err
 
 
+@pytest.mark.parametrize("option", ["--width", "--height", "--samples"])
+def test_demo_image_options_are_checked_before_rendering(tmp_path, capsys, option):
+    with pytest.raises(SystemExit) as info:
+        main(["demo", "--out", str(tmp_path / "demo"), option, "0", "--quiet"])
+    out, err = capsys.readouterr()
+    assert info.value.code == 2 and out == ""  # granite-sim was not started
+    assert err == f"granite demo: error: argument {option}: must be at least 1: '0' (see granite demo --help)\n"
+    assert not (tmp_path / "demo").exists()
+
+
 def test_view_reads_a_run_folder_with_skipped_frames(run_dir, tmp_path, capsys):
     """`granite view` pairs the poses (estimated frames only) with every frame's records."""
     import rerun as rr

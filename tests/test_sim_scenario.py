@@ -88,6 +88,8 @@ def test_overrides_rescale_intrinsics():
     assert h.camera.fx == s.camera.fx / 2 and h.camera.cy == (s.camera.cy + 0.5) / 2 - 0.5
     with pytest.raises(ConfigError, match="--samples"):
         with_overrides(s, samples=0)
+    with pytest.raises(ConfigError, match="--width"):  # 0 is a value, not "no override"
+        with_overrides(s, width=0)
 
 
 def _run_cli(capsys, *argv) -> tuple[int, str]:
@@ -112,6 +114,19 @@ def test_cli_bad_input_one_line_exit_2(tmp_path, capsys, make_args, message):
     assert len(err.splitlines()) == 1 and err.startswith("granite-sim render: error:")
     assert message in err
     assert not (tmp_path / "o" / "mav0").exists()  # nothing rendered
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["render", "default", "--out", "OUT", "--width", "0"],
+     "granite-sim render: error: argument --width: must be positive, got 0 (see granite-sim render --help)"),
+    ([], "granite-sim: error: the following arguments are required: COMMAND (see granite-sim --help)"),
+])
+def test_cli_option_errors_are_one_line(tmp_path, capsys, argv, message):
+    with pytest.raises(SystemExit) as info:
+        cli.main([str(tmp_path / "o") if a == "OUT" else a for a in argv])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and err == message + "\n"
+    assert not (tmp_path / "o").exists()
 
 
 def test_cli_unwritable_output(tmp_path, capsys):

@@ -151,3 +151,24 @@ def test_user_errors_exit_2_with_one_line(capsys, dataset, tmp_path, make_args, 
     assert code == 2 and out == ""
     assert err.count("\n") == 1 and err.startswith("granite track: error:") and message in err
     assert not (tmp_path / "x.csv").exists()
+
+
+@pytest.mark.parametrize(
+    "frames, message",
+    [
+        (["--start", "-1"], "argument --start: must be at least 0: '-1'"),
+        (["--stop", "0"], "argument --stop: must be at least 1: '0'"),
+        (["--start", "4", "--stop", "2"], "--start 4 must be less than --stop 2"),
+        (["--start", str(N_FRAMES)], f"--start {N_FRAMES} is past the last frame (the dataset has {N_FRAMES} frames"),
+        (["--start", "100", "--stop", "200"], "--start 100 is past the last frame"),
+    ],
+)
+def test_empty_or_negative_frame_range_exits_2_before_any_work(capsys, dataset, tmp_path, frames, message):
+    try:
+        code = cli_main.main(["track", str(dataset), "--out", str(tmp_path / "x.csv"), *frames])
+    except SystemExit as exit_:  # argparse errors
+        code = exit_.code
+    out, err = capsys.readouterr()
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and err.startswith("granite track: error:") and message in err
+    assert not (tmp_path / "x.csv").exists()

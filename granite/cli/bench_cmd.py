@@ -35,6 +35,21 @@ a Dask scheduler runs whatever a client sends it.
 """
 
 
+def dashboard_address(text: str) -> str:
+    """argparse type: ``HOST:PORT`` or ``:PORT`` (all interfaces), the port an integer 0-65535
+    (0: any free port)."""
+    host, colon, port = text.rpartition(":")
+    if not colon:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT or :PORT, got {text!r}")
+    try:
+        number = int(port)
+    except ValueError:
+        number = -1
+    if not 0 <= number <= 65535:
+        raise argparse.ArgumentTypeError(f"the port must be an integer 0-65535, got {port!r} in {text!r}")
+    return text
+
+
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser("bench", help="run a study on a Dask cluster (paper tables)",
                               description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -46,7 +61,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     where.add_argument("--workers", type=positive_int, metavar="N",
                        help="worker processes of the local cluster (default: one per core)")
     where.add_argument("--serial", action="store_true", help="no Dask: every task in this process, in order")
-    p.add_argument("--dashboard-address", default="127.0.0.1:8787", metavar="HOST:PORT",
+    p.add_argument("--dashboard-address", type=dashboard_address, default="127.0.0.1:8787", metavar="HOST:PORT",
                    help="dashboard of the local cluster (default 127.0.0.1:8787; a free port if taken)")
     p.add_argument("--tls-ca-file", type=Path, help="TLS: CA certificate (PEM) for --scheduler tls://...")
     p.add_argument("--tls-cert", type=Path, help="TLS: this client's certificate (PEM)")
@@ -93,7 +108,12 @@ def execute(study, out: Path, scheduler: str | None = None, workers: int | None 
         print(f"scheduler {scheduler}: {len(client.scheduler_info().get('workers', {}))} workers; "
               f"dashboard {client.dashboard_link}", flush=True)
     else:
-        cluster = local_cluster(workers, dashboard_address)
+        try:
+            cluster = local_cluster(workers, dashboard_address)
+        except (RuntimeError, OSError, ValueError) as error:
+            reason = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
+            raise ConfigError(f"the local Dask cluster failed to start (dashboard {dashboard_address}): "
+                              f"{reason}") from None
         client = Client(cluster)
         print(f"local cluster {cluster.scheduler_address}: {len(cluster.workers)} worker processes "
               f"on 127.0.0.1; dashboard {client.dashboard_link}", flush=True)

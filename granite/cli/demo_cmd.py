@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from granite.cli.eval_cmd import positive_seconds
-from granite.cli.run_cmd import cli_notifier, config_name, perform_run, summary_lines, write_run_report
+from granite.cli.run_cmd import cli_notifier, config_name, perform_run, positive_int, summary_lines, write_run_report
 from granite.errors import GraniteError, InputError
 from granite.estimator.config import VoConfig
 from granite.evaluation import DEFAULT_RPE_DELTA
@@ -40,9 +40,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (default: runs/demo)")
     p.add_argument("--scenario", default="default", help="scenario name or TOML file (default: default)")
-    p.add_argument("--width", type=int, help="override the scenario's image width")
-    p.add_argument("--height", type=int, help="override the scenario's image height")
-    p.add_argument("--samples", type=int, help="override the scenario's Cycles samples")
+    p.add_argument("--width", type=positive_int, help="override the scenario's image width")
+    p.add_argument("--height", type=positive_int, help="override the scenario's image height")
+    p.add_argument("--samples", type=positive_int, help="override the scenario's Cycles samples")
     p.add_argument("--config", type=Path, help="VO configuration (TOML; default: the built-in defaults, "
                    "configs/reference.toml = the reference's)")
     p.add_argument("--delta", type=positive_seconds, default=DEFAULT_RPE_DELTA, metavar="SECONDS",

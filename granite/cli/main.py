@@ -23,15 +23,16 @@ from granite.errors import GraniteError  # noqa: E402
 SUBCOMMANDS: tuple[str, ...] = ("demo", "run", "eval", "view", "track", "bench")
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors: ``granite run: error: ... (see granite run --help)``."""
+class OneLineErrorParser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``granite run: error: ... (see granite run --help)``
+    (subcommand parsers inherit the class; granite-sim uses it too)."""
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(
+    parser = OneLineErrorParser(
         prog="granite",
         description="Robust monocular visual odometry for flying robots (granite-py).",
     )

@@ -129,40 +129,42 @@ def perform_run(dataset, config: VoConfig, out: Path, rerun: Path | None = None,
         if view is not None:
             view.log_frame(record, frame.image, output.diagnostics, frame.path)
 
-    try:
+    try:  # an error leaves neither landmarks.npz nor the recording behind
         result = run_vo(dataset, config, progress=progress, on_frame=on_frame, max_frames=max_frames,
                         notify=notify, concurrent=concurrent)
+        evaluation = None
+        if dataset.ground_truth is not None:
+            try:
+                evaluation = evaluate(result.trajectory, dataset.ground_truth, delta=delta).to_dict()
+                evaluation.update(initialization_delay([d.timestamp for d in result.diagnostics],
+                                                       [d.state for d in result.diagnostics],
+                                                       dataset.ground_truth).to_dict())
+            except (GraniteError, ValueError) as error:  # the run itself succeeded: keep its outputs
+                result.evaluation_error = str(error)
+                print(f"granite: warning: evaluation failed, no evaluation.json written: {error}", file=sys.stderr)
+        extra = {"dataset": str(dataset.root), "format": dataset.format, "config": config_label or "given",
+                 "rpe_delta": delta, "evaluation_error": result.evaluation_error,
+                 "undistortion": dataset.undistortion.describe() if dataset.undistortion is not None else None}
+        write_run(out, result, config, extra, formats)
+        (out / "evaluation.json").unlink(missing_ok=True)
+        if evaluation is not None:
+            atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=2, allow_nan=False) + "\n")
+        if records:
+            records[0].close()
+        else:
+            write_records(out / "landmarks.npz", [])
+        if report:
+            write_run_report(out, result, dataset, evaluation, delta, config_label or "given",
+                             title=f"granite run: {dataset.name}")
+        if view is not None:
+            view.finish(result.trajectory)
+            result.logging_startup_seconds, result.logging_seconds = view.startup_seconds, view.seconds
     except BaseException:
         for writer in records:
             writer.discard()
+        if view is not None:
+            view.discard()
         raise
-    evaluation = None
-    if dataset.ground_truth is not None:
-        try:
-            evaluation = evaluate(result.trajectory, dataset.ground_truth, delta=delta).to_dict()
-            evaluation.update(initialization_delay([d.timestamp for d in result.diagnostics],
-                                                   [d.state for d in result.diagnostics],
-                                                   dataset.ground_truth).to_dict())
-        except (GraniteError, ValueError) as error:  # the run itself succeeded: keep its outputs
-            result.evaluation_error = str(error)
-            print(f"granite: warning: evaluation failed, no evaluation.json written: {error}", file=sys.stderr)
-    extra = {"dataset": str(dataset.root), "format": dataset.format, "config": config_label or "given",
-             "rpe_delta": delta, "evaluation_error": result.evaluation_error,
-             "undistortion": dataset.undistortion.describe() if dataset.undistortion is not None else None}
-    write_run(out, result, config, extra, formats)
-    (out / "evaluation.json").unlink(missing_ok=True)
-    if evaluation is not None:
-        atomic_write_text(out / "evaluation.json", json.dumps(evaluation, indent=2, allow_nan=False) + "\n")
-    if records:
-        records[0].close()
-    else:
-        write_records(out / "landmarks.npz", [])
-    if report:
-        write_run_report(out, result, dataset, evaluation, delta, config_label or "given",
-                         title=f"granite run: {dataset.name}")
-    if view is not None:
-        view.finish(result.trajectory)
-        result.logging_startup_seconds, result.logging_seconds = view.startup_seconds, view.seconds
     return result, evaluation
 
 

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from granite.cli.eval_cmd import int_at_least
 from granite.errors import ConfigError, InputError
 
 DESCRIPTION = """\
@@ -62,8 +63,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         help="detection cell size in pixels (default 40)")
     parser.add_argument("--finest-level-only", action="store_true",
                         help="detect corners on level 0 only (the paper's ablation †)")
-    parser.add_argument("--start", type=int, default=0, metavar="I", help="first frame index")
-    parser.add_argument("--stop", type=int, metavar="I", help="stop before this frame index")
+    parser.add_argument("--start", type=int_at_least(0), default=0, metavar="I", help="first frame index")
+    parser.add_argument("--stop", type=int_at_least(1), metavar="I", help="stop before this frame index")
     parser.add_argument("--quiet", action="store_true", help="no progress bar and summary")
     return parser
 
@@ -106,9 +107,14 @@ def run(args: argparse.Namespace) -> int:
     suffix = args.out.suffix.lower()
     if suffix not in _FORMATS:
         raise InputError(f"unknown output format {args.out.suffix!r}; use .csv or .npz", args.out)
+    if args.stop is not None and args.start >= args.stop:
+        raise InputError(f"--start {args.start} must be less than --stop {args.stop}")
     config = load_config(args)
     check_writable(args.out, folder=False)
     dataset = open_dataset(args.dataset, calib_path=args.calib)
+    if args.start >= len(dataset):
+        raise InputError(f"--start {args.start} is past the last frame (the dataset has {len(dataset)} frames, "
+                         f"0..{len(dataset) - 1})", dataset.root)
     size = None
     if dataset.calibration is not None:
         size = (dataset.calibration.width, dataset.calibration.height)
@@ -117,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     rows: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []
     frame_t, frame_n, frame_rejected, frame_ms = [], [], [], []
     frames = dataset.frames(args.start, args.stop)
-    total = max(0, min(len(dataset), args.stop if args.stop is not None else len(dataset)) - max(args.start, 0))
+    total = min(len(dataset), args.stop if args.stop is not None else len(dataset)) - args.start
     bar = tqdm(frames, total=total, unit="frame", disable=args.quiet, file=sys.stderr,
                desc=f"track {dataset.name}")
     for frame in bar:

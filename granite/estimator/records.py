@@ -14,6 +14,7 @@ from __future__ import annotations
 import shutil
 import tempfile
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -159,5 +160,5 @@ def read_records(path: str | Path) -> list[FrameRecord]:
         return records
     except FileNotFoundError:
         raise InputError("run records not found", path) from None
-    except (KeyError, ValueError, OSError) as error:
+    except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as error:
         raise InputError(f"not a granite run records file ({error})", path) from None

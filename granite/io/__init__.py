@@ -5,7 +5,7 @@ Every reader validates its input and raises :class:`granite.errors.InputError` n
 file and, where it applies, the 1-based line. Every writer is atomic (:mod:`.atomic`).
 """
 
-from granite.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text, check_writable
+from granite.io.atomic import PendingFile, atomic_path, atomic_write_bytes, atomic_write_text, check_writable
 from granite.io.calibration import (
     CAMERA_PARAMS,
     RADTAN,
@@ -48,6 +48,7 @@ __all__ = [
     "Calibration",
     "Dataset",
     "Frame",
+    "PendingFile",
     "Undistortion",
     "SensorInfo",
     "atomic_path",

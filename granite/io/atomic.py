@@ -21,6 +21,32 @@ def _temp_path(path: Path) -> Path:
     return path.with_name(f".{path.stem}.tmp-{secrets.token_hex(6)}{path.suffix}")
 
 
+class PendingFile:
+    """A file written through a temporary path beside ``path`` over a longer span than one
+    ``with`` block (e.g. a recording logged frame by frame): the writer creates ``tmp``,
+    :meth:`commit` moves it onto ``path``, :meth:`discard` removes it (both: once only)."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = _temp_path(self.path)
+        self._done = False
+
+    def commit(self) -> None:
+        if self._done:
+            return
+        if not self.tmp.exists():
+            raise FileNotFoundError(f"the writer did not create the temporary file {self.tmp}")
+        os.replace(self.tmp, self.path)
+        self._done = True
+
+    def discard(self) -> None:
+        if not self._done:
+            self._done = True
+            with contextlib.suppress(FileNotFoundError):
+                self.tmp.unlink()
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path next to ``path`` for the caller to create; on normal exit it
@@ -31,17 +57,12 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         with atomic_path("out/image.png") as tmp:
             cv2.imwrite(str(tmp), image)
     """
-    dest = Path(path)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temp_path(dest)
+    pending = PendingFile(path)
     try:
-        yield tmp
-        if not tmp.exists():
-            raise FileNotFoundError(f"the writer did not create the temporary file {tmp}")
-        os.replace(tmp, dest)
+        yield pending.tmp
+        pending.commit()
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
+        pending.discard()
         raise
 
 

@@ -148,6 +148,8 @@ def _number(value: Any, jpath: str, p: Path) -> float:
 def parse_calibration(data: Any, path: str | Path) -> Calibration:
     """Calibration from decoded Basalt JSON ``data`` (``path`` for messages)."""
     p = Path(path)
+    if not isinstance(data, dict):
+        raise InputError("top level must be a JSON object", p)
     root = _get(data, "value0", "", p)
     cam = _get(_get(root, "intrinsics", "value0", p), 0, "value0.intrinsics", p)
     jcam = "value0.intrinsics[0]"

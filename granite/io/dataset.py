@@ -163,8 +163,12 @@ def _calibration_from_sensor(path: Path, notes: list[str]) -> Calibration | None
     if missing:
         notes.append(f"no calibration: {path} lacks {', '.join(missing)}")
         return None
-    if info.camera_model not in (None, "pinhole") or len(info.intrinsics) != 4:
+    if info.camera_model not in (None, "pinhole"):
         notes.append(f"no calibration: unsupported camera_model {info.camera_model!r} in {path}")
+        return None
+    if len(info.intrinsics) != 4:
+        notes.append(f"no calibration: camera_model pinhole needs 4 intrinsics [fu, fv, cu, cv], got "
+                     f"{len(info.intrinsics)} in {path}")
         return None
     fx, fy, cx, cy = info.intrinsics
     params = {"fx": fx, "fy": fy, "cx": cx, "cy": cy}

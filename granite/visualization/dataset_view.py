@@ -28,10 +28,23 @@ def log_dataset(
     spawn: bool = False,
     depth_of: DepthReader | None = None,
     progress: Callable[[Iterable], Iterable] = lambda frames: frames,
+    warn: Callable[[str], None] | None = None,
 ) -> dict[str, int]:
     """Write a recording of ``dataset`` to ``rrd_path`` (or stream it, ``spawn``). Returns
-    counts: frames, images, poses (ground truth at the frame time), depth maps."""
+    counts: frames, images, poses (ground truth at the frame time), depth maps. ``warn(text)``
+    is told about every image that cannot be used. On an error no file is written."""
     log = RerunLogger(f"granite-dataset-{dataset.name}", rrd_path, spawn)
+    try:
+        counts = _log_frames(log, dataset, depth_of, progress, warn)
+    except BaseException:
+        log.discard()
+        raise
+    log.close()
+    return counts
+
+
+def _log_frames(log: RerunLogger, dataset: Dataset, depth_of: DepthReader | None,
+                progress: Callable[[Iterable], Iterable], warn: Callable[[str], None] | None) -> dict[str, int]:
     calib = dataset.calibration
     if calib is not None:
         i = calib.intrinsics
@@ -52,6 +65,8 @@ def log_dataset(
         if frame.image is not None:
             log.log_image(frame.image, frame.path)
             counts["images"] += 1
+        elif warn is not None:
+            warn(f"frame {frame.index}: image skipped: {frame.error} ({frame.path})")
         if poses is not None and np.isfinite(poses[frame.index]).all():
             posed.append(frame.index)
         depth = depth_of(frame.index) if depth_of is not None else None
@@ -61,5 +76,4 @@ def log_dataset(
     if posed:
         log.send_camera_poses(posed, dataset.timestamps[posed], poses[posed])
     counts["poses"] = len(posed)
-    log.close()
     return counts

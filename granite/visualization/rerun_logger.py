@@ -34,6 +34,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from granite.geometry import rotation_to_quat
+from granite.io import PendingFile, check_writable
 from granite.visualization.colors import inverse_distance_colors
 
 #: Radius of the reference patch pattern (52 samples on a 2 px lattice, scaled 0.75), level 0.
@@ -53,6 +54,16 @@ KEYFRAME_COLOR = (40, 80, 255)
 #: Dot radius of a track and line radius of its patch outline, in image pixels.
 TRACK_DOT_RADIUS_PX = 2.0
 PATCH_RING_WIDTH_PX = 0.5
+
+
+def recording_path(rerun: str | Path | None, spawn: bool, default: str | Path) -> Path | None:
+    """The recording a viewing command writes (``None``: streamed to a viewer only): ``rerun``,
+    else ``default`` unless ``spawn``. Checked before any work: raises InputError naming it
+    when it cannot be written as a file."""
+    path = None if spawn and not rerun else Path(rerun or default)
+    if path is not None:
+        check_writable(path, folder=False)
+    return path
 
 
 def frustum_wireframes(poses_w_c: np.ndarray, K: np.ndarray, resolution, depth: float) -> np.ndarray:
@@ -100,13 +111,15 @@ def default_blueprint() -> rrb.Blueprint:
 
 
 class RerunLogger:
-    """Logs one recording, saved to ``rrd_path`` or (``spawn``) streamed to a new viewer."""
+    """Logs one recording, saved to ``rrd_path`` or (``spawn``) streamed to a new viewer. The
+    file is written atomically: logged to a temporary file beside it, moved onto ``rrd_path``
+    by :meth:`close`; :meth:`discard` (on an error) removes it."""
 
     def __init__(self, name: str, rrd_path: str | Path | None = None, spawn: bool = False):
         self.rec = rr.RecordingStream("granite", recording_id=name)
-        if rrd_path is not None:
-            Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
-            self.rec.save(str(rrd_path), default_blueprint=default_blueprint())
+        self._file = None if rrd_path is None else PendingFile(rrd_path)
+        if self._file is not None:
+            self.rec.save(str(self._file.tmp), default_blueprint=default_blueprint())
         elif spawn:
             self.rec.spawn(default_blueprint=default_blueprint())
         self._t0: float | None = None
@@ -264,6 +277,15 @@ class RerunLogger:
         )
 
     def close(self) -> None:
-        """Flush everything logged so far to the file or viewer."""
+        """Flush everything logged so far to the viewer, or to the file and move it in place."""
         self.flush_series()
         self.rec.flush(blocking=True)
+        if self._file is not None:
+            self.rec.disconnect()
+            self._file.commit()
+
+    def discard(self) -> None:
+        """Give up the recording: no file is written (a no-op after :meth:`close`)."""
+        if self._file is not None:
+            self.rec.disconnect()
+            self._file.discard()

@@ -143,6 +143,10 @@ class RunView:
         self.log.close()
         self.seconds += time.perf_counter() - start
 
+    def discard(self) -> None:
+        """Give up the recording after an error: no file is written."""
+        self.log.discard()
+
     def _scale_errors(self, trajectory: Trajectory, sims: dict) -> dict[float, float]:
         """Relative scale error per estimate timestamp (empty without ground truth)."""
         if self.ground_truth is None or not sims:
