@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.stats import chi2
 
 from granite.backend import BackendConfig, pose_delta
+from granite.backend.solver import scene_scale, step_is_small
 from granite.backend.synthetic import build_window, make_hover_scene, make_scene
 from granite.camera import make_camera
 
@@ -174,3 +177,52 @@ def test_a_gauss_newton_step_that_raises_the_cost_is_undone():
         if report.reverted:
             break
     assert report.reverted  # the test reaches the undo path
+
+
+def _scaled_scene(scene, s: float):
+    """The same scene in a world scaled by ``s`` (translations x s, inverse distances / s):
+    the images, hence the observations, are identical."""
+    out = dataclasses.replace(scene, poses=scene.poses.copy(), lm_inv_dist=scene.lm_inv_dist / s)
+    out.poses[:, :3, 3] *= s
+    return out
+
+
+def test_stopping_rule_helpers_against_hand_computed_values():
+    assert scene_scale(np.array([0.0, 0.5, 0.25, 0.0, 1.0])) == pytest.approx(2.0)  # median of 2, 4, 1
+    assert scene_scale(np.zeros(3)) is None
+    cfg = BackendConfig(step_tolerance=1e-4, translation_step_tolerance=5e-5)
+    dx = np.zeros(12)
+    dx[6:9] = 3e-4  # translation of the second pose: 3e-4 map units
+    assert step_is_small(dx, cfg, 10.0)  # below 5e-5 x 10 = 5e-4
+    assert not step_is_small(dx, cfg, 2.0)  # above 1e-4
+    assert not step_is_small(dx, BackendConfig(translation_step_tolerance=0.0), 10.0)  # absolute
+    assert not step_is_small(dx, cfg, None)  # no scene scale: the absolute rule
+    dx[:] = 0.0
+    dx[10] = 2e-4  # a rotation [rad]: never relative
+    assert not step_is_small(dx, cfg, 1e6)
+
+
+@pytest.mark.parametrize("relative", [True, False])
+def test_gauss_newton_stops_after_the_same_steps_in_a_scaled_world(relative):
+    """With the translation tolerance relative to the scene's median landmark distance the
+    stopping decision does not depend on the world's scale (the monocular map's unit is
+    arbitrary); the reference's absolute tolerance stops a large world later and a small one
+    earlier."""
+    scene = make_scene(num_frames=8, num_points=200, sigma=0.5, seed=4)
+    cfg = BackendConfig(translation_step_tolerance=5e-5 if relative else 0.0, max_iterations=30)
+    iterations, errors = [], []
+    for s in (0.2, 1.0, 20.0):  # inverse distances stay below max_inv_dist
+        sc = _scaled_scene(scene, s)
+        win = build_window(sc, cfg, pose_noise=(0.02 * s, 0.01), bearing_noise=0.002,
+                           inv_dist_noise=0.2, seed=5)
+        _scale_fix(win, sc)
+        report = win.optimize()
+        assert report.converged
+        iterations.append(report.iterations)
+        e, _ = _pose_errors(win, sc)
+        errors.append(np.linalg.norm(e.reshape(-1, 6)[:, :3], axis=1).max() / s)
+    if relative:
+        assert iterations[0] == iterations[1] == iterations[2]
+        np.testing.assert_allclose(errors, errors[1], rtol=1e-3)
+    else:
+        assert iterations[0] < iterations[1] < iterations[2]

@@ -67,8 +67,8 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
     """Optimise the problem's states in place (see the module docstring).
 
     Plain Gauss-Newton unless ``config.use_lm`` or ``state`` says Levenberg-Marquardt. Stops
-    after ``max_iterations`` (default ``config.max_iterations``) or when the largest pose
-    increment is below ``config.step_tolerance``. A Gauss-Newton step that raises the cost is
+    after ``max_iterations`` (default ``config.max_iterations``) or when the pose increment is
+    small (:func:`step_is_small`). A Gauss-Newton step that raises the cost is
     undone and the remaining iterations, and the next ``config.lm_calls_after_failed_step``
     calls, are Levenberg-Marquardt steps (``report.reverted``). Raises ``FloatingPointError``
     when a step makes the state non-finite.
@@ -88,6 +88,7 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
     state.lm_calls_left = max(state.lm_calls_left - 1, 0)
     if not problem.frame_ids:
         return OptimizeReport(0, 0.0, lambda: 0.0, True, (), None, timings)
+    scale = scene_scale(pk.lm_d)
     for it in range(iters):
         t0 = time.perf_counter()
         lin, red = cost.linearize(problem, 0.0)
@@ -122,11 +123,12 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
             timings["update"] += t5 - t4
             if not problem.states_finite():
                 raise FloatingPointError("bundle adjustment diverged (non-finite state)")
-            if np.max(np.abs(dx), initial=0.0) < cfg.step_tolerance:
+            if step_is_small(dx, cfg, scale):
                 converged = True
                 break
         else:
-            status, lam = _lm_step(problem, cost, cfg, lin, red, system, lam, pairs, timings)
+            status, lam = _lm_step(problem, cost, cfg, lin, red, system, lam, pairs, timings,
+                                   scale)
             if status != "accepted":
                 converged = status == "converged"
                 break
@@ -136,9 +138,33 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
                           timings, reverted)
 
 
+def scene_scale(inv_dist: np.ndarray) -> float | None:
+    """The median distance [map units] of the finite landmarks (inverse distances
+    ``inv_dist`` > 0) from their hosts, ``None`` without any."""
+    finite = inv_dist[inv_dist > 0.0]
+    return float(np.median(1.0 / finite)) if finite.size else None
+
+
+def step_is_small(dx: np.ndarray, cfg: BackendConfig, scale: float | None) -> bool:
+    """Whether the pose increments ``dx`` (6K,: ``[v, w]`` per pose) are below the stopping
+    tolerances: every rotation component below ``cfg.step_tolerance`` [rad], every
+    translation component below ``cfg.translation_step_tolerance * scale`` (``scale``: the
+    scene's median landmark distance, :func:`scene_scale`), or below the absolute
+    ``cfg.step_tolerance`` when that is 0 or there is no scale (the reference's rule)."""
+    d = dx.reshape(-1, 6)
+    if not d.size:
+        return True
+    if cfg.translation_step_tolerance > 0.0 and scale is not None:
+        trans_tol = cfg.translation_step_tolerance * scale
+    else:
+        trans_tol = cfg.step_tolerance
+    return bool(np.max(np.abs(d[:, 3:])) < cfg.step_tolerance
+                and np.max(np.abs(d[:, :3])) < trans_tol)
+
+
 def _lm_step(problem: WindowProblem, cost: WindowCost, cfg: BackendConfig,
              lin: LinearizedObservations, red: ReducedSystem, system: WindowHessian,
-             lam: float, pairs, timings) -> tuple[str, float]:
+             lam: float, pairs, timings, scale: float | None) -> tuple[str, float]:
     """One Levenberg-Marquardt iteration: damp, solve, accept if the cost does not increase,
     otherwise raise lambda and retry. Returns (``"accepted"``, ``"converged"`` (step below
     tolerance) or ``"stalled"`` (lambda at its maximum), new lambda)."""
@@ -156,7 +182,7 @@ def _lm_step(problem: WindowProblem, cost: WindowCost, cfg: BackendConfig,
         old = problem.apply_step(dx, dl, cfg.max_inv_dist)
         new_cost = cost.cost(problem, pairs)
         timings["solve"] += time.perf_counter() - t3
-        small = np.max(np.abs(dx), initial=0.0) < cfg.step_tolerance
+        small = step_is_small(dx, cfg, scale)
         if np.isfinite(new_cost) and new_cost <= system.cost:
             return ("converged" if small else "accepted"), max(lam / cfg.lm_lambda_decrease,
                                                                cfg.lm_lambda_min)
