@@ -88,7 +88,8 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
     state.lm_calls_left = max(state.lm_calls_left - 1, 0)
     if not problem.frame_ids:
         return OptimizeReport(0, 0.0, lambda: 0.0, True, (), None, timings)
-    scale = scene_scale(pk.lm_d)
+    # the scene's scale only matters to the relative translation rule (off by default)
+    scale = scene_scale(pk.lm_d) if cfg.translation_step_tolerance > 0.0 else None
     for it in range(iters):
         t0 = time.perf_counter()
         lin, red = cost.linearize(problem, 0.0)
