@@ -16,7 +16,8 @@ Default datasets: the 640x480 bench renders of this checkout
    printed): wall ms per frame and frames/s, process CPU ms per frame (``time.process_time``),
    CPU utilisation = CPU time / wall time (1.0 = one core busy), and in the concurrent mode the
    CPU time of the caller's thread (the estimator; ``time.thread_time``) and the wall time it
-   waited for the frontend (the tracking of the next frame).
+   waited for the frontend (the tracking of the next frame) and for the previous frame's
+   Λ_scaledrift (computed on a thread of its own while the estimator works on the next frame).
 
 On a loaded machine wall times (frames/s) depend on the other processes: the CPU times are the
 figures to compare, and the load average is printed with each row. Results also go to
@@ -84,6 +85,7 @@ def worker(dataset_path: str, mode: str, repeats: int, frames: int | None,
         row = {"wall_ms": 1e3 * wall / n, "cpu_ms": 1e3 * cpu / n, "utilisation": cpu / wall,
                "fps": n / wall, "caller_cpu_ms": 1e3 * (pipe.caller_cpu if concurrent else main) / n,
                "waited_tracker_ms": 1e3 * pipe.waited_tracker / n,
+               "waited_scale_drift_ms": 1e3 * pipe.waited_scale_drift / n,
                "poses_checksum": float(np.sum(np.abs(np.array(poses))))}
         if best is None or row["wall_ms"] < best["wall_ms"]:
             best = row
@@ -117,7 +119,7 @@ def main() -> int:
     datasets = args.datasets or default_datasets()
     print(f"{os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.1f}")
     header = (f"{'dataset':34s} {'mode':4s} {'frames':>6s} {'fps':>6s} {'wall ms':>8s} {'CPU ms':>7s} "
-              f"{'util':>5s} {'estim. CPU ms':>13s} {'waited ms':>9s} {'peak RSS MB':>11s} {'load':>5s}")
+              f"{'util':>5s} {'estim. CPU ms':>13s} {'waited ms':>9s} {'Λ wait ms':>9s} {'peak RSS MB':>11s} {'load':>5s}")
     print(header)
     rows = []
     for ds in datasets:
@@ -133,7 +135,8 @@ def main() -> int:
                 continue
             row = json.loads(proc.stdout.strip().splitlines()[-1])
             rows.append(row)
-            waited = f"{row['waited_tracker_ms']:9.2f}" if mode == "conc" else f"{'':9s}"
+            waited = (f"{row['waited_tracker_ms']:9.2f} {row.get('waited_scale_drift_ms', 0.0):9.2f}"
+                      if mode == "conc" else f"{'':9s} {'':9s}")
             print(f"{Path(row['dataset']).name + ' ' + row['size']:34s} {mode:4s} {row['frames']:6d} "
                   f"{row['fps']:6.1f} {row['wall_ms']:8.2f} {row['cpu_ms']:7.2f} {row['utilisation']:5.2f} "
                   f"{row['caller_cpu_ms']:13.2f} {waited} {row['peak_rss_mb']:11.0f} {row['load']:5.1f}",

@@ -70,7 +70,7 @@ def install_stage_timers() -> None:
     for owner, name, label in [
         (V, "estimate", "estimate (total)"), (V, "predict_tracks", "predict_tracks"),
         (V, "finish", "vo.finish"), (V, "window_landmarks", "export landmarks"),
-        (vo, "scale_drift_indicator", "scale_drift"),
+        (V, "_scale_drift", "scale_drift"),
         (vo, "prediction_basis", "prediction_basis"),
         (W, "optimize", "window.optimize"), (W, "marginalize", "marginalize"),
         (W, "remove_outliers", "remove_outliers"), (W, "add_observations", "add_observations"),
@@ -86,7 +86,8 @@ def install_stage_timers() -> None:
         (sol, "back_substitute", "back_substitute"),
         (pb.WindowProblem, "no_motion_pairs", "no_motion_pairs"),
         (pb.WindowProblem, "apply_step", "apply_step"),
-        (sd, "keyframe_system", "sd.keyframe_system"), (sd, "scale_drift_of_system", "sd.of_system"),
+        (sd, "_snapshot", "sd.snapshot"), (sd, "_system_of_snapshot", "sd.keyframe_system"),
+        (sd, "scale_drift_of_system", "sd.of_system"),
         (tr.FrameTracks, "from_result", "FrameTracks.from_result"),
         (hs.WindowHessian, "negative_entropy", "negative_entropy"),
     ]:

@@ -23,8 +23,10 @@ from granite.backend import (
     pose_delta,
     relative_poses,
     relative_translation_information,
+    WorkspacePool,
     scale_drift_indicator,
     scale_drift_of_system,
+    scale_drift_task,
 )
 from granite.backend.reprojection import reprojection_residuals
 from granite.backend.synthetic import make_scene
@@ -278,6 +280,30 @@ def test_relative_translation_information_matches_a_dense_finite_difference_comp
     result = scale_drift_indicator(win)
     mean_t = np.mean(np.linalg.norm(relative_poses(system.poses)[:, :3, 3], axis=1))
     assert result.value == pytest.approx(1.0 / (math.sqrt(lam_num[0]) * mean_t), rel=1e-6)
+
+
+def test_a_task_computes_the_indicator_of_the_window_as_it_was_when_the_task_was_made():
+    """The concurrent pipeline makes the task at the frame's final estimate and runs it on
+    another thread while the window is optimised and marginalised for the next frame."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    scene = make_scene(num_frames=7, num_points=250, seed=4, obs_per_landmark=4)
+    win = _window(scene, _world(np.eye(3), np.zeros(3), 1.0), 1.0, True, False)
+    expected = scale_drift_indicator(win)
+    assert expected.defined
+    own = scale_drift_task(win, workspaces=WorkspacePool())
+    shared = scale_drift_task(win)  # the window's buffers, which the next steps overwrite
+    kfs = win.keyframe_ids
+    win.optimize(max_iterations=3)
+    win.marginalize([kfs[0]])
+    win.set_pose(kfs[-1], win.pose(kfs[-1]) @ decoupled_increment(np.eye(4), np.full(6, 0.05)))
+    changed = scale_drift_indicator(win)
+    assert changed.value != expected.value  # the window did change what Λ reads
+    with ThreadPoolExecutor(1) as pool:
+        result = pool.submit(own).result()
+    for res in (result, shared()):
+        assert (res.value, res.value_ref, res.lambda_min, res.num_keyframes) == \
+            (expected.value, expected.value_ref, expected.lambda_min, expected.num_keyframes)
 
 
 def test_scale_fix_in_the_window_is_the_anchor_when_included_and_absent_when_excluded():

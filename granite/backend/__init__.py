@@ -11,7 +11,7 @@ from granite.backend.hessian import WindowHessian, marginal_information, margina
 from granite.backend.landmarks import Landmark, LandmarkDatabase, Observation
 from granite.backend.marginalization import MarginalizationReport
 from granite.backend.priors import MargPrior, ScaleFix, pose_delta
-from granite.backend.problem import WindowProblem
+from granite.backend.problem import WindowProblem, WorkspacePool
 from granite.backend.scale_drift import (
     KeyframeSystem,
     ScaleDriftResult,
@@ -23,6 +23,7 @@ from granite.backend.scale_drift import (
     relative_translation_information,
     scale_drift_indicator,
     scale_drift_of_system,
+    scale_drift_task,
 )
 from granite.backend.solver import OptimizeReport
 from granite.backend.window import FrameState, SlidingWindow
@@ -34,6 +35,7 @@ __all__ = [
     "MarginalizationReport",
     "FrameState",
     "WindowProblem",
+    "WorkspacePool",
     "WindowHessian",
     "MargPrior",
     "ScaleFix",
@@ -53,4 +55,5 @@ __all__ = [
     "relative_translation_information",
     "scale_drift_indicator",
     "scale_drift_of_system",
+    "scale_drift_task",
 ]

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numba
@@ -46,6 +47,8 @@ from granite.backend.hessian import information_schur_complement, marginalize_de
 from granite.geometry import hat
 
 if TYPE_CHECKING:
+    from granite.backend.linearization import WindowCost
+    from granite.backend.problem import WindowProblem, WorkspacePool
     from granite.backend.window import SlidingWindow
 
 #: Fewer keyframes than this: Λ is not defined (paper: a chain of at least two relative poses).
@@ -220,7 +223,23 @@ def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True) -> Ke
     observations made in keyframes, landmarks eliminated; the marginalisation prior, the
     no-motion terms and (``include_scale_fix``) the scale fix of Eq. 9 over all window frames,
     with the non-keyframe frames marginalised out of them."""
-    kfs = window.keyframe_ids
+    return _system_of_snapshot(_snapshot(window, include_scale_fix))
+
+
+@dataclasses.dataclass
+class _Snapshot:
+    """What :func:`keyframe_system` reads of a window, copied (the packed problem holds copies
+    of the landmark states and observations; the prior and the scale fix are replaced, never
+    changed, by the window)."""
+
+    frame_ids: tuple[int, ...]
+    problem: WindowProblem
+    cost: WindowCost
+    scale_fix_included: bool
+
+
+def _snapshot(window: SlidingWindow, include_scale_fix: bool) -> _Snapshot:
+    kfs = tuple(window.keyframe_ids)
     # every landmark with its observations made in keyframes; one seen in its host only
     # contributes nothing after its elimination (the kernel skips it cheaply, cheaper than
     # selecting the landmarks seen in a second keyframe beforehand)
@@ -228,6 +247,11 @@ def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True) -> Ke
     cost = window.cost_terms()
     if not include_scale_fix:
         cost.scale_fix = None
+    return _Snapshot(kfs, problem, cost, cost.scale_fix is not None)
+
+
+def _system_of_snapshot(snap: _Snapshot) -> KeyframeSystem:
+    problem, cost, kfs = snap.problem, snap.cost, snap.frame_ids
     _, red = cost.linearize(problem, with_rhs=False)  # the information matrix only
     H_red = red.H
     (H_p, _, _), (H_s, _, _), (H_n, _, _) = cost.prior_terms(
@@ -241,14 +265,13 @@ def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True) -> Ke
         H_priors, _ = marginalize_dense(H_pr, np.zeros(H_pr.shape[0]), rows, others)
     else:  # no pose term on a non-keyframe: nothing to marginalise
         H_priors = H_pr[np.ix_(rows, rows)]
-    sf = window.scale_fix
     return KeyframeSystem(
-        frame_ids=tuple(kfs),
+        frame_ids=kfs,
         poses=problem.poses[idx].copy(),
         poses_lin=problem.poses_lin[idx].copy(),
         H_reprojection=H_red[np.ix_(rows, rows)],
         H_priors=H_priors,
-        scale_fix_included=include_scale_fix and sf is not None,
+        scale_fix_included=snap.scale_fix_included,
     )
 
 
@@ -276,8 +299,30 @@ def scale_drift_indicator(window: SlidingWindow, include_scale_fix: bool = True
     frame: after the optimisation, the keyframe decision and outlier removal, before
     marginalisation). ``include_scale_fix``: whether the scale fix of Eq. 9 counts while it is
     in the window (the reference leaves it out; see docs/backend.md for the measurement)."""
+    return scale_drift_task(window, include_scale_fix)()
+
+
+def scale_drift_task(window: SlidingWindow, include_scale_fix: bool = True,
+                     workspaces: WorkspacePool | None = None) -> Callable[[], ScaleDriftResult]:
+    """:func:`scale_drift_indicator` in two parts: the window's state is packed (copied) now,
+    and the returned callable computes Λ from that copy alone, so the window may change before
+    it runs and it may run on another thread (its kernels release the GIL). ``workspaces``:
+    the linearisation buffers of the computation (default the window's; give a pool of its
+    own to a computation that may overlap the window's next optimisation, and run the
+    callables of one pool one at a time). Numpy floating-point warnings are suppressed inside
+    (every non-finite result is caught and reported as "not defined"), so a computation on
+    another thread issues none."""
     kfs = window.keyframe_ids
     if len(kfs) < MIN_KEYFRAMES:
-        return ScaleDriftResult(None, None, len(kfs),
-                                reason=f"fewer than {MIN_KEYFRAMES} keyframes")
-    return scale_drift_of_system(keyframe_system(window, include_scale_fix))
+        result = ScaleDriftResult(None, None, len(kfs),
+                                  reason=f"fewer than {MIN_KEYFRAMES} keyframes")
+        return lambda: result
+    snap = _snapshot(window, include_scale_fix)
+
+    def compute() -> ScaleDriftResult:
+        if workspaces is not None:
+            snap.problem.workspace = workspaces.view(snap.problem.packed.num_observations)
+        with np.errstate(all="ignore"):
+            return scale_drift_of_system(_system_of_snapshot(snap))
+
+    return compute

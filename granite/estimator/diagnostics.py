@@ -17,7 +17,8 @@ One row per processed frame (skipped frames included). Columns:
 ``infinite_landmarks`` connected landmarks at infinity (d = 0)
 ``keyframe``           1 when this frame became a keyframe (decided one frame later, Sec. IV-D)
 ``negative_entropy``   ln det of the pose information (Eq. 10); empty when not computed
-``processing_ms``      wall-clock time spent on this frame
+``processing_ms``      wall-clock time spent on this frame by the estimator's thread (in the
+                       concurrent pipeline without Λ_scaledrift, computed beside the next frame)
 ``warnings``           Python warnings (e.g. numpy's RuntimeWarning) raised while processing
                        it; each kind is listed once in ``summary.json``
 ``scale_drift_indicator``      Λ_scaledrift of paper Eq. 17 at this frame's final estimate

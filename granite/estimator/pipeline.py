@@ -17,7 +17,15 @@ The concurrent pipeline (``concurrent=True``) has three helper threads besides t
   (:class:`~granite.optical_flow.frame_to_frame.FlowJob`);
 * the **helper**, which joins the points' guided / zero-motion passes (the kernel is per point
   independent there; the median and local passes follow over all points) when the tracking
-  was started while the caller waits for it.
+  was started while the caller waits for it;
+* the **scale-drift** thread computes frame k's Λ_scaledrift
+  (:func:`granite.backend.scale_drift_task`: the window is copied on the caller's thread at
+  the point of the sequential computation, the linearisation, landmark elimination and
+  eigen-solver run on the copy with GIL-free kernels) while the caller goes on with frame
+  k+1. Frame k's output is yielded once frame k+1 is estimated (or at the end, or before a
+  skipped frame): the outputs lag the input by one frame. Nothing the estimator reads comes
+  from Λ, so the results are those of the sequential loop; the frame's warnings are recorded
+  and issued with its output.
 
 Work sharing: those per-point passes run in chunks of points that any thread claims through
 an atomic counter inside the GIL-free kernel (:mod:`granite.optical_flow.work_share`). The
@@ -39,7 +47,7 @@ tracks are bit-identical (``tests/test_pipeline.py``); ``concurrent=False`` (``g
 --sequential``) is the plain loop over :meth:`MonocularVO.process`, kept for debugging.
 
 Warnings: the caller (``runner.run_vo``) records the warnings raised while it waits for each
-frame's output. The frontend work started early for frame k+1 on the caller's thread (its
+frame's output (the pipeline records each frame's own and issues them with its output). The frontend work started early for frame k+1 on the caller's thread (its
 prediction and guesses) records its warnings and re-issues them with frame k+1; the helper
 threads run only numba kernels, OpenCV and small numpy operations, which issue none.
 """
@@ -63,6 +71,12 @@ class _Failure:
         self.error = error
 
 
+def _reissue(caught: list[warnings.WarningMessage]) -> None:
+    """Issue recorded warnings again (on the caller's thread, with their own source line)."""
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+
+
 class VoPipeline:
     """``run(frames)`` yields ``(frame, FrameOutput)`` per frame; a frame is anything with
     ``index``, ``timestamp`` and ``image`` (None: missing or unreadable) attributes, e.g.
@@ -72,10 +86,12 @@ class VoPipeline:
         self.vo = vo
         self.concurrent = concurrent
         self.prefetch = max(1, int(prefetch))
-        #: wall seconds the caller's thread waited for the reader and for the tracker, and
+        #: wall seconds the caller's thread waited for the reader, for the tracker and for the
+        #: previous frame's Λ_scaledrift (``waited_scale_drift``), and
         #: its CPU seconds (``time.thread_time``) inside :meth:`run` (concurrent mode)
         self.waited_reader = 0.0
         self.waited_tracker = 0.0
+        self.waited_scale_drift = 0.0
         self.caller_cpu = 0.0
 
     def run(self, frames: Iterable) -> Iterator[tuple[object, FrameOutput]]:
@@ -119,6 +135,8 @@ class VoPipeline:
                                   name="granite-reader", daemon=True)
         tracker = ThreadPoolExecutor(1, thread_name_prefix="granite-tracker")
         helper = ThreadPoolExecutor(1, thread_name_prefix="granite-helper")
+        indicator = ThreadPoolExecutor(1, thread_name_prefix="granite-scale-drift")
+        vo.scale_drift_executor = indicator
         # the helper joins the tracking of a frame begun early only while the caller waits for
         # it; when the whole estimator step runs meanwhile, the caller joins at its end
         early_helper = helper if waits else None
@@ -143,6 +161,20 @@ class VoPipeline:
                 tracker.submit(job.run)
             return frame, job, caught
 
+        held = []  # (frame, output, warnings) of the last frame, its Λ_scaledrift computing
+
+        def release():
+            """The held frame's finished output (waits for its Λ_scaledrift), its warnings
+            re-issued; None if no frame is held."""
+            if not held:
+                return None
+            frame, out, caught = held.pop()
+            t = time.perf_counter()
+            out = vo.complete(out)
+            self.waited_scale_drift += time.perf_counter() - t
+            _reissue(caught)
+            return frame, out
+
         reader.start()
         pending = None  # (frame, job, warnings) of the next frame, begun early
         cpu = time.thread_time()
@@ -155,38 +187,51 @@ class VoPipeline:
                     out = vo.process(frame.index, frame.timestamp, None)
                     item = take()
                     self.caller_cpu += time.thread_time() - cpu
+                    done = release()
+                    if done is not None:
+                        yield done
                     yield frame, out
                     cpu = time.thread_time()
                     continue
-                if pending is not None and pending[0] is frame:
-                    _, job, caught = pending
-                    for w in caught:
-                        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno,
-                                               source=w.source)
-                else:
-                    job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp), helper,
-                                     share_points=True)
-                    job.run()
-                pending = None
-                t = time.perf_counter()
-                job.wait()
-                self.waited_tracker += time.perf_counter() - t
-                tracks = flow.complete(job)
-                vo.note_tracks(frame.timestamp, tracks)
-                nxt = take()
-                launch_next = nxt is not _END and nxt[0].image is not None
-                launched = []
-                if launch_next and not waits:  # the next frame needs nothing of this estimate
-                    pending = launch(nxt)
-                ready = (lambda: launched.append(launch(nxt))) if launch_next and waits else None
-                estimated = vo.estimate(frame.index, frame.timestamp, frame.image, tracks, start, ready)
-                if ready is not None:  # launched once the predictions were fixed (or now)
-                    pending = launched[0] if launched else launch(nxt)
-                out = vo.finish(estimated)
+                # the frame's warnings, issued when its output is (after its Λ_scaledrift)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    if pending is not None and pending[0] is frame:
+                        _, job, early = pending
+                        _reissue(early)
+                    else:
+                        job = flow.begin(frame.timestamp, prep, vo.predict_tracks(frame.timestamp),
+                                         helper, share_points=True)
+                        job.run()
+                    pending = None
+                    t = time.perf_counter()
+                    job.wait()
+                    self.waited_tracker += time.perf_counter() - t
+                    tracks = flow.complete(job)
+                    vo.note_tracks(frame.timestamp, tracks)
+                    nxt = take()
+                    launch_next = nxt is not _END and nxt[0].image is not None
+                    launched = []
+                    if launch_next and not waits:  # the next frame needs nothing of this estimate
+                        pending = launch(nxt)
+                    ready = (lambda: launched.append(launch(nxt))) if launch_next and waits else None
+                    estimated = vo.estimate(frame.index, frame.timestamp, frame.image, tracks, start,
+                                            ready)
+                    if ready is not None:  # launched once the predictions were fixed (or now)
+                        pending = launched[0] if launched else launch(nxt)
+                    out = vo.finish(estimated)
+                # this frame's Λ_scaledrift runs while the estimator works on the next frame:
+                # its output is yielded after the next frame's estimate (or at the end)
+                done = release()
+                held.append((frame, out, caught))
                 self.caller_cpu += time.thread_time() - cpu
-                yield frame, out
+                if done is not None:
+                    yield done
                 cpu = time.thread_time()
                 item = nxt
+            done = release()
+            if done is not None:
+                yield done
         finally:
             stop.set()
             if pending is not None and pending[1].rejected is None:
@@ -196,6 +241,8 @@ class VoPipeline:
                     pass
             tracker.shutdown(wait=True)
             helper.shutdown(wait=True)
+            indicator.shutdown(wait=True)
+            vo.scale_drift_executor = None
             try:  # unblock the reader
                 while True:
                     items.get_nowait()

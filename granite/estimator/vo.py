@@ -25,12 +25,14 @@ to the old one) that continues from the current pose.
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from granite.backend import SlidingWindow, scale_drift_indicator
+from granite.backend import ScaleDriftResult, SlidingWindow, WorkspacePool, scale_drift_task
 from granite.estimator.config import VoConfig
 from granite.estimator.diagnostics import FrameDiagnostics
 from granite.estimator.keyframes import EntropyKeyframeSelector, depth_ratio_exceeds, median_depth
@@ -63,6 +65,9 @@ class FrameOutput:
     #: (M,), filled only when :attr:`MonocularVO.export_landmarks` is set.
     landmarks_w: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     landmarks_inverse_distance: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: Λ_scaledrift still being computed on another thread (:attr:`MonocularVO.scale_drift_executor`):
+    #: the diagnostics' two indicator fields are filled by :meth:`MonocularVO.complete`
+    scale_drift_pending: Future | None = field(default=None, repr=False, compare=False)
 
 
 class MonocularVO:
@@ -107,6 +112,11 @@ class MonocularVO:
         self._tracked_guess: tuple[float, np.ndarray] | None = None
         self.keyframe_log: list[tuple[int, int]] = []  # (frame id, sub-map) of every keyframe
         self.export_landmarks = False  # fill FrameOutput.landmarks_w (costs ~1 ms per frame)
+        #: when set (the concurrent pipeline), Λ_scaledrift of a frame is computed there from a
+        #: copy of the window, while the estimator goes on with the next frame; the frame's
+        #: output is then finished by :meth:`complete`. None: computed in line (same values).
+        self.scale_drift_executor: Executor | None = None
+        self._scale_drift_workspaces = WorkspacePool()  # the buffers of those computations
 
     # ----------------------------------------------------------------------------- outputs
     def window_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
@@ -398,7 +408,7 @@ class MonocularVO:
         if prediction_ready is not None:
             prediction_ready()
         if not lost:
-            drift = scale_drift_indicator(win)  # final estimate, before marginalisation (Sec. V)
+            drift = self._scale_drift()  # final estimate, before marginalisation (Sec. V)
             keep = {self._init_reference} if (est.init_keep_reference and self.state is not MapState.MAPPED
                                               and self._init_reference in win) else set()
             marg = frames_to_marginalize(win, self.config.backend, keep, self._timestamps)
@@ -412,6 +422,23 @@ class MonocularVO:
         inv = win.landmarks.inverse_distances(tracks.ids)
         return (start, timestamp, frame_id, tracks, status, submap, finite, infinite, keyframe_taken,
                 negative_entropy, drift, T_w_c, inv)
+
+    def _scale_drift(self) -> ScaleDriftResult | Future:
+        """Λ_scaledrift of the window now: the result, or its future on
+        :attr:`scale_drift_executor` (the window is copied first)."""
+        task = scale_drift_task(self.window, workspaces=self._scale_drift_workspaces)
+        executor = self.scale_drift_executor
+        return task() if executor is None else executor.submit(task)
+
+    @staticmethod
+    def complete(out: FrameOutput) -> FrameOutput:
+        """``out`` with Λ_scaledrift filled in, waiting for its computation if it runs on
+        another thread (:attr:`scale_drift_executor`); ``out`` itself when nothing is pending."""
+        pending = out.scale_drift_pending
+        if pending is None:
+            return out
+        _set_scale_drift(out.diagnostics, pending.result())
+        return dataclasses.replace(out, scale_drift_pending=None)
 
     def finish(self, estimated) -> FrameOutput:
         """The rest of :meth:`process` after :meth:`estimate`: the frame's outputs. Reads the
@@ -430,10 +457,19 @@ class MonocularVO:
             timestamp, frame_id, submap, status.value, len(tracks), finite, infinite, keyframe_taken,
             negative_entropy if negative_entropy is not None and np.isfinite(negative_entropy) else None,
             (time.perf_counter() - start) * 1e3,
-            scale_drift_indicator=drift.value if drift is not None else None,
-            scale_drift_indicator_ref=drift.value_ref if drift is not None else None,
         )
+        pending = drift if isinstance(drift, Future) else None
+        if pending is None:
+            _set_scale_drift(diag, drift)
         if self.export_landmarks:
             points, inv_dist = self.window_landmarks()
-            return FrameOutput(T_w_c, diag, tracks, inv, tuple(win.keyframe_ids), points, inv_dist)
-        return FrameOutput(T_w_c, diag, tracks, inv, tuple(win.keyframe_ids))
+            return FrameOutput(T_w_c, diag, tracks, inv, tuple(win.keyframe_ids), points, inv_dist,
+                               scale_drift_pending=pending)
+        return FrameOutput(T_w_c, diag, tracks, inv, tuple(win.keyframe_ids),
+                           scale_drift_pending=pending)
+
+
+def _set_scale_drift(diag: FrameDiagnostics, drift: ScaleDriftResult | None) -> None:
+    """The indicator fields of the diagnostics (None: not computed or not defined)."""
+    diag.scale_drift_indicator = drift.value if drift is not None else None
+    diag.scale_drift_indicator_ref = drift.value_ref if drift is not None else None
