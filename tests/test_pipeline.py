@@ -135,3 +135,34 @@ def test_an_error_in_the_frontend_thread_reaches_the_caller():
     with pytest.raises(RuntimeError, match="reader failed"):
         for _ in VoPipeline(vo, True).run(Broken()):
             pass
+
+
+@pytest.mark.parametrize("where", ["estimator", "caller"])
+def test_an_interrupted_concurrent_run_keeps_every_finished_frame(where, monkeypatch):
+    """The concurrent pipeline hands a frame out once the next one is estimated (its
+    Λ_scaledrift runs meanwhile): Ctrl-C inside the estimator or in the caller's own code
+    (``on_frame``) still returns every frame finished, equal to the uninterrupted run's."""
+    dataset = open_dataset(SEQUENCES / "aggressive")
+    full = run_vo(dataset, VoConfig(), progress=False, max_frames=14, concurrent=False)
+    original = MonocularVO.estimate
+
+    def estimate(self, frame_id, *args):
+        if where == "estimator" and frame_id == 10:
+            raise KeyboardInterrupt
+        return original(self, frame_id, *args)
+
+    def on_frame(frame, out):
+        if where == "caller" and frame.index == 10:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(MonocularVO, "estimate", estimate)
+    result = run_vo(dataset, VoConfig(), progress=False, on_frame=on_frame, max_frames=14,
+                    concurrent=True)
+    assert result.interrupted
+    kept = [d.frame_index for d in result.diagnostics]
+    assert kept == list(range(len(kept)))
+    # interrupted while estimating frame 10: frames 0-9; in on_frame of frame 10: frame 11 was
+    # estimated too (its Λ computing) and is kept
+    assert len(kept) == (10 if where == "estimator" else 12)
+    assert _diagnostics(result) == _diagnostics(full)[:len(kept)]
+    assert np.array_equal(result.trajectory.poses, full.trajectory.poses[:len(result.trajectory)])

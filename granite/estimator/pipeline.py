@@ -23,7 +23,8 @@ The concurrent pipeline (``concurrent=True``) has three helper threads besides t
   the point of the sequential computation, the linearisation, landmark elimination and
   eigen-solver run on the copy with GIL-free kernels) while the caller goes on with frame
   k+1. Frame k's output is yielded once frame k+1 is estimated (or at the end, or before a
-  skipped frame): the outputs lag the input by one frame. Nothing the estimator reads comes
+  skipped frame): the outputs lag the input by one frame; a run stopped early (Ctrl-C) gets
+  the frame held back from :meth:`VoPipeline.drain`. Nothing the estimator reads comes
   from Λ, so the results are those of the sequential loop; the frame's warnings are recorded
   and issued with its output.
 
@@ -93,6 +94,17 @@ class VoPipeline:
         self.waited_tracker = 0.0
         self.waited_scale_drift = 0.0
         self.caller_cpu = 0.0
+        #: (frame, output, warnings) of the frame whose Λ_scaledrift is computing (concurrent)
+        self._held: list = []
+
+    def drain(self) -> list[tuple[object, FrameOutput, list[warnings.WarningMessage]]]:
+        """After :meth:`run` stopped early (an exception inside it, e.g. Ctrl-C, or the
+        caller closing it): the frame it had finished but not yet yielded (its Λ_scaledrift
+        was computing), completed, with the warnings recorded while it was processed; empty
+        when there is none (the sequential mode never holds a frame back)."""
+        out = [(frame, self.vo.complete(o), caught) for frame, o, caught in self._held]
+        self._held.clear()
+        return out
 
     def run(self, frames: Iterable) -> Iterator[tuple[object, FrameOutput]]:
         if not self.concurrent:
@@ -161,17 +173,19 @@ class VoPipeline:
                 tracker.submit(job.run)
             return frame, job, caught
 
-        held = []  # (frame, output, warnings) of the last frame, its Λ_scaledrift computing
+        held = self._held  # (frame, output, warnings) of the last frame, its Λ computing
+        held.clear()
 
         def release():
             """The held frame's finished output (waits for its Λ_scaledrift), its warnings
             re-issued; None if no frame is held."""
             if not held:
                 return None
-            frame, out, caught = held.pop()
+            frame, out, caught = held[0]
             t = time.perf_counter()
             out = vo.complete(out)
             self.waited_scale_drift += time.perf_counter() - t
+            held.clear()  # only once complete: an interruption while waiting leaves it to drain()
             _reissue(caught)
             return frame, out
 

@@ -169,7 +169,39 @@ def run_vo(
     n = len(dataset) if max_frames is None else min(max_frames, len(dataset))
     bar = tqdm(total=n, desc=f"granite run {dataset.name}", unit="frame", disable=not progress)
     tally = WarningTally(notify)
-    outputs = VoPipeline(vo, concurrent).run(dataset.frames(0, n))
+    pipeline = VoPipeline(vo, concurrent)
+    outputs = pipeline.run(dataset.frames(0, n))
+
+    def record_frame(frame, out, caught) -> None:
+        numerical = 0
+        for record in caught:
+            if issubclass(record.category, FrameRejectedWarning):
+                continue  # counted below, by reason
+            tally.add_python_warning(record, frame.index)
+            numerical += 1
+        diag = out.diagnostics
+        diag.warnings = numerical
+        if frame.image is None:
+            reason = frame.error or "unreadable"
+            skipped.append((frame.index, reason))
+            tally.add(("skipped", reason), "skipped", reason, "", frame.index,
+                      f"frame {frame.index} skipped: {reason} ({frame.path})")
+        elif diag.state == "skipped":
+            reason = (out.tracks.rejected if out.tracks is not None else None) or "rejected"
+            skipped.append((frame.index, reason))
+            tally.add(("frontend rejection", reason), "frontend rejection", reason, "", frame.index,
+                      f"frame {frame.index} skipped: the frontend rejected it ({reason})")
+        else:
+            times.append(frame.timestamp)
+            poses.append(out.T_w_c)
+            submaps.append(diag.submap)
+            indices.append(frame.index)
+        diags.append(diag)
+        if on_frame is not None:
+            on_frame(frame, out)
+        bar.update(1)
+        bar.set_postfix(state=diag.state, submap=diag.submap, refresh=False)
+
     try:
         while True:
             with warnings.catch_warnings(record=True) as caught:
@@ -177,39 +209,14 @@ def run_vo(
                 item = next(outputs, None)
             if item is None:
                 break
-            frame, out = item
-            numerical = 0
-            for record in caught:
-                if issubclass(record.category, FrameRejectedWarning):
-                    continue  # counted below, by reason
-                tally.add_python_warning(record, frame.index)
-                numerical += 1
-            diag = out.diagnostics
-            diag.warnings = numerical
-            if frame.image is None:
-                reason = frame.error or "unreadable"
-                skipped.append((frame.index, reason))
-                tally.add(("skipped", reason), "skipped", reason, "", frame.index,
-                          f"frame {frame.index} skipped: {reason} ({frame.path})")
-            elif diag.state == "skipped":
-                reason = (out.tracks.rejected if out.tracks is not None else None) or "rejected"
-                skipped.append((frame.index, reason))
-                tally.add(("frontend rejection", reason), "frontend rejection", reason, "", frame.index,
-                          f"frame {frame.index} skipped: the frontend rejected it ({reason})")
-            else:
-                times.append(frame.timestamp)
-                poses.append(out.T_w_c)
-                submaps.append(diag.submap)
-                indices.append(frame.index)
-            diags.append(diag)
-            if on_frame is not None:
-                on_frame(frame, out)
-            bar.update(1)
-            bar.set_postfix(state=diag.state, submap=diag.submap, refresh=False)
+            record_frame(*item, caught)
     except KeyboardInterrupt:
         interrupted = True
     finally:
         outputs.close()
+        if interrupted:  # the frame finished but not yet handed out (its Λ was computing)
+            for frame, out, caught in pipeline.drain():
+                record_frame(frame, out, caught)
         bar.close()
     if not diags:
         raise InputError("no frame was processed", dataset.root)
