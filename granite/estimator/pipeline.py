@@ -48,9 +48,11 @@ tracks are bit-identical (``tests/test_pipeline.py``); ``concurrent=False`` (``g
 --sequential``) is the plain loop over :meth:`MonocularVO.process`, kept for debugging.
 
 Warnings: the caller (``runner.run_vo``) records the warnings raised while it waits for each
-frame's output (the pipeline records each frame's own and issues them with its output). The frontend work started early for frame k+1 on the caller's thread (its
-prediction and guesses) records its warnings and re-issues them with frame k+1; the helper
-threads run only numba kernels, OpenCV and small numpy operations, which issue none.
+frame's output (the pipeline records each frame's own and issues them with its output). The
+frontend work started early for frame k+1 on the caller's thread (its prediction and guesses)
+records its warnings and re-issues them with frame k+1; the helper threads run only numba
+kernels, OpenCV and small numpy operations, which issue none, and Λ_scaledrift runs with
+numpy's floating-point warnings off.
 """
 
 from __future__ import annotations
