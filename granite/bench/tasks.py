@@ -33,7 +33,8 @@ RESULT_COLUMNS = (
     "sequence", "scenario", "seed", "frames", "variant", "status", "images", "estimated_frames",
     "restarts", "tracking_percentage", "init_delay_frames", "init_delay_s", "rpe_rmse", "ate_rmse",
     "ate_over_path_length", "path_length", "num_rpe_pairs", "rpe_fixed_scale_rmse", "lambda_defined_percentage",
-    "lambda_median", "lambda_ref_median", "vo_fps", "vo_wall_s",
+    "lambda_median", "lambda_ref_median", "gn_iterations_mean", "gn_unconverged_percentage",
+    "vo_fps", "vo_wall_s",
 )
 TIMING_COLUMNS = ("vo_fps", "vo_wall_s")
 MARKERS = ".bench"  # folder of task markers inside a sequence or run folder
@@ -194,6 +195,10 @@ def evaluate_run(out: Path, seq: Sequence, variant: Variant, delta: float, align
         row["lambda_defined_percentage"] = 100.0 * len(lam) / len(tracked)
     row["lambda_median"] = _median(lam)
     row["lambda_ref_median"] = _median(lam_ref)
+    optimized = [d for d in diags if d.gn_converged is not None]
+    if optimized:
+        row["gn_iterations_mean"] = sum(d.gn_iterations for d in optimized) / len(optimized)
+        row["gn_unconverged_percentage"] = 100.0 * sum(not d.gn_converged for d in optimized) / len(optimized)
     try:
         gt = open_dataset(seq.folder(out)).ground_truth
         est, _ = read_estimate(folder)

@@ -26,6 +26,11 @@ One row per processed frame (skipped frames included). Columns:
                        3 keyframes, no scale anchor, not tracking)
 ``scale_drift_indicator_ref``  the released reference code's variant of Λ (eigenvector-weighted
                        translations); empty when not defined
+``gn_iterations``      Gauss-Newton (or Levenberg-Marquardt) iterations spent on this frame:
+                       its main optimisation, a new keyframe's extra iterations and the
+                       re-optimisation after outlier removal
+``gn_converged``       1 when the frame's main optimisation stopped by its step rule, 0 when it
+                       used all ``[backend] max_iterations`` (or LM stalled); empty when none ran
 =====================  =====================================================================
 
 Unavailable values are written as empty fields, never as NaN. Reading derives the columns and
@@ -62,6 +67,8 @@ class FrameDiagnostics:
     warnings: int = 0
     scale_drift_indicator: float | None = None
     scale_drift_indicator_ref: float | None = None
+    gn_iterations: int = 0
+    gn_converged: bool | None = None
 
 
 COLUMNS = tuple(f.name for f in fields(FrameDiagnostics))
@@ -98,16 +105,16 @@ def write_diagnostics(path: str | Path, rows: list[FrameDiagnostics]) -> None:
     atomic_write_text(path, diagnostics_to_csv(rows))
 
 
+def _parse_bool(text: str) -> bool:
+    if text not in ("0", "1"):
+        raise ValueError(f"expected 0 or 1, got {text!r}")
+    return text == "1"
+
+
 def _parser(annotation: str):
     """Text -> value for a field annotation (``X | None``: empty text gives None)."""
     base = annotation.replace("| None", "").replace("None |", "").strip()
-    if base == "bool":
-        def parse_bool(text: str) -> bool:
-            if text not in ("0", "1"):
-                raise ValueError(f"expected 0 or 1, got {text!r}")
-            return text == "1"
-        return parse_bool
-    convert = {"float": float, "int": int, "str": str}[base]
+    convert = {"bool": _parse_bool, "float": float, "int": int, "str": str}[base]
     if "None" in annotation:
         return lambda text: convert(text) if text != "" else None
     return convert

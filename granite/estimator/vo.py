@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from granite.backend import ScaleDriftResult, SlidingWindow, WorkspacePool, scale_drift_task
+from granite.backend import OptimizeReport, ScaleDriftResult, SlidingWindow, WorkspacePool, scale_drift_task
 from granite.estimator.config import VoConfig
 from granite.estimator.diagnostics import FrameDiagnostics
 from granite.estimator.keyframes import EntropyKeyframeSelector, depth_ratio_exceeds, median_depth
@@ -117,6 +117,10 @@ class MonocularVO:
         #: output is then finished by :meth:`complete`. None: computed in line (same values).
         self.scale_drift_executor: Executor | None = None
         self._scale_drift_workspaces = WorkspacePool()  # the buffers of those computations
+        #: the frame's optimisation, for its diagnostics: iterations over every call, and
+        #: whether the main call converged (None: it did not run)
+        self._gn_iterations = 0
+        self._gn_converged: bool | None = None
 
     # ----------------------------------------------------------------------------- outputs
     def window_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
@@ -216,7 +220,7 @@ class MonocularVO:
         self.keyframe_log.append((kf, self.submap))
         self.selector.reset()
         if est.keyframe_extra_iterations:
-            win.optimize(max_iterations=est.keyframe_extra_iterations)
+            self._optimize(max_iterations=est.keyframe_extra_iterations)
         return True
 
     def _scene_scale_changed(self, frame_id: int) -> bool:
@@ -236,7 +240,8 @@ class MonocularVO:
         a few more iterations without them. Returns (negative entropy, keyframe inserted)."""
         win, est = self.window, self.config.estimator
         # the system linearised after ``entropy_iteration`` steps (0-based index of the loop)
-        report = win.optimize(snapshot_iteration=est.entropy_iteration)
+        report = self._optimize(snapshot_iteration=est.entropy_iteration)
+        self._gn_converged = report.converged
         finite, infinite = win.num_connected(frame_id)
         negative_entropy = None
         if report.snapshot is not None and frame_id in report.snapshot.frame_ids:
@@ -267,7 +272,13 @@ class MonocularVO:
             return
         kept = sum(win.num_connected(frame_id))
         if removed_here >= est.outlier_reoptimize_min_fraction * (kept + removed_here):
-            win.optimize(max_iterations=est.outlier_reoptimize_iterations)
+            self._optimize(max_iterations=est.outlier_reoptimize_iterations)
+
+    def _optimize(self, **kwargs) -> OptimizeReport:
+        """``window.optimize(**kwargs)``, its iterations counted for the frame's diagnostics."""
+        report = self.window.optimize(**kwargs)
+        self._gn_iterations += report.iterations
+        return report
 
     def _initial_guess(self, timestamp: float) -> np.ndarray:
         """Where the optimisation of a frame starts: the motion model's pose, with the rotation
@@ -355,6 +366,7 @@ class MonocularVO:
         if tracks.rejected is not None:  # blank / wrong size: the frontend kept its last frame
             return self._skipped(timestamp, frame_id, tracks, start)
         self._tracks[frame_id] = FrameTracks.from_result(tracks)
+        self._gn_iterations, self._gn_converged = 0, None
         win = self.window
         starts_submap = self.state is MapState.EMPTY
         guess = np.eye(4) if starts_submap else self._initial_guess(timestamp)
@@ -421,7 +433,7 @@ class MonocularVO:
         # inverse distances of the frame's tracks in the final state: the frame's output
         inv = win.landmarks.inverse_distances(tracks.ids)
         return (start, timestamp, frame_id, tracks, status, submap, finite, infinite, keyframe_taken,
-                negative_entropy, drift, T_w_c, inv)
+                negative_entropy, drift, T_w_c, inv, self._gn_iterations, self._gn_converged)
 
     def _scale_drift(self) -> ScaleDriftResult | Future:
         """Λ_scaledrift of the window now: the result, or its future on
@@ -447,7 +459,7 @@ class MonocularVO:
         if isinstance(estimated, FrameOutput):
             return estimated
         (start, timestamp, frame_id, tracks, status, submap, finite, infinite, keyframe_taken,
-         negative_entropy, drift, T_w_c, inv) = estimated
+         negative_entropy, drift, T_w_c, inv, gn_iterations, gn_converged) = estimated
         est, win = self.config.estimator, self.window
         if status in (FrameStatus.TRACKING, FrameStatus.REINIT):
             seen = inv[inv > 0.0]
@@ -456,7 +468,8 @@ class MonocularVO:
         diag = FrameDiagnostics(
             timestamp, frame_id, submap, status.value, len(tracks), finite, infinite, keyframe_taken,
             negative_entropy if negative_entropy is not None and np.isfinite(negative_entropy) else None,
-            (time.perf_counter() - start) * 1e3,
+            (time.perf_counter() - start) * 1e3, gn_iterations=gn_iterations,
+            gn_converged=gn_converged,
         )
         pending = drift if isinstance(drift, Future) else None
         if pending is None:

@@ -1,0 +1,92 @@
+"""The optimiser's columns of ``diagnostics.csv``: ``gn_iterations`` (every Gauss-Newton / LM
+iteration spent on a frame) and ``gn_converged`` (whether the frame's main optimisation stopped
+by its step rule rather than at ``max_iterations``). Checked against the solver's own reports,
+recorded per frame by wrapping :meth:`SlidingWindow.optimize`, and against the stopping rule's
+two extremes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from granite.backend.window import SlidingWindow
+from granite.estimator.config import VoConfig
+from granite.estimator.diagnostics import FrameDiagnostics, diagnostics_to_csv, read_diagnostics
+from granite.estimator.vo import MonocularVO
+from granite.io import open_dataset
+
+ASSET = Path(__file__).resolve().parents[1] / "assets" / "sequences" / "default"
+FRAMES = 40
+
+
+def _run(monkeypatch, backend: dict | None = None):
+    """(diagnostics, reports) of the first FRAMES frames; ``reports[i]``: the (kwargs, report)
+    of every ``optimize`` call made while frame i was processed."""
+    reports: dict[int, list] = {}
+    current = {"frame": None}
+    optimize = SlidingWindow.optimize
+
+    def recording(self, *args, **kwargs):
+        report = optimize(self, *args, **kwargs)
+        reports.setdefault(current["frame"], []).append((kwargs, report))
+        return report
+
+    monkeypatch.setattr(SlidingWindow, "optimize", recording)
+    ds = open_dataset(ASSET)
+    vo = MonocularVO(ds.calibration.camera(), VoConfig.from_dict({"backend": backend or {}}))
+    diags = []
+    for i, frame in enumerate(ds.frames(0, FRAMES)):
+        current["frame"] = i
+        diags.append(vo.process(i, frame.timestamp, frame.image).diagnostics)
+    return diags, reports
+
+
+def test_columns_sum_the_frames_optimisations(monkeypatch):
+    diags, reports = _run(monkeypatch)
+    tracked = [d for d in diags if d.state == "tracking"]
+    assert len(tracked) > FRAMES // 2
+    with_extra = 0
+    for d in diags:
+        calls = reports.get(d.frame_index, [])
+        assert d.gn_iterations == sum(r.iterations for _, r in calls)
+        main = [r for kw, r in calls if "snapshot_iteration" in kw]
+        assert len(main) <= 1
+        assert d.gn_converged == (main[0].converged if main else None)
+        with_extra += len(calls) > 1
+    assert with_extra > 0  # keyframes' extra iterations are counted too
+    assert any(d.gn_iterations > 0 and d.gn_converged for d in tracked)
+
+
+def test_converged_follows_the_step_rule(monkeypatch):
+    never, _ = _run(monkeypatch, {"step_tolerance": 0.0, "max_iterations": 3})
+    main_ran = [d for d in never if d.gn_converged is not None]
+    assert main_ran and not any(d.gn_converged for d in main_ran)
+    assert all(d.gn_iterations >= 3 for d in main_ran if d.state == "tracking")
+    always, _ = _run(monkeypatch, {"step_tolerance": 1e3})
+    main_ran = [d for d in always if d.gn_converged is not None]
+    assert main_ran and all(d.gn_converged for d in main_ran)
+
+
+def test_columns_round_trip_with_empty_convergence(tmp_path):
+    rows = [FrameDiagnostics(0.0, 0, 0, "init"),
+            FrameDiagnostics(0.05, 1, 0, "tracking", gn_iterations=9, gn_converged=False),
+            FrameDiagnostics(0.10, 2, 0, "tracking", gn_iterations=3, gn_converged=True)]
+    path = tmp_path / "diagnostics.csv"
+    path.write_text(diagnostics_to_csv(rows))
+    back = read_diagnostics(path)
+    assert [(r.gn_iterations, r.gn_converged) for r in back] == [(0, None), (9, False), (3, True)]
+    lines = path.read_text().splitlines()
+    at = lines[0].split(",").index("gn_converged")
+    assert [line.split(",")[at] for line in lines[1:]] == ["", "0", "1"]
+
+
+def test_a_file_without_the_columns_reads_with_their_defaults(tmp_path):
+    text = diagnostics_to_csv([FrameDiagnostics(0.0, 0, 0, "tracking", gn_iterations=4)])
+    header, row = text.splitlines()
+    keep = [i for i, c in enumerate(header.split(",")) if not c.startswith("gn_")]
+    path = tmp_path / "old.csv"
+    path.write_text("\n".join(",".join(line.split(",")[i] for i in keep)
+                              for line in (header, row)) + "\n")
+    (back,) = read_diagnostics(path)
+    assert back.gn_iterations == 0 and back.gn_converged is None
