@@ -326,3 +326,27 @@ def test_single_bearing_stereographic_parameter_has_the_bits_of_the_array_one():
         stereo_from_bearing3([0.0, 0.0, -2.0])
     with pytest.raises(ValueError):
         stereo_from_bearing3([0.0, 0.0, 0.0])
+
+
+def test_scale_links_count_finite_landmarks_seen_in_two_other_keyframes():
+    """Against a brute-force count over random observation sets: a landmark carries scale to a
+    frame when it is finite and observed in at least two keyframes besides that frame."""
+    rng = np.random.default_rng(21)
+    db = LandmarkDatabase()
+    frames = [0, 4, 9, 13, 14, 15]
+    keyframes = [0, 4, 9, 13]
+    seen = {}
+    for lm_id in range(200):
+        host = int(rng.choice(keyframes))
+        d = 0.0 if rng.random() < 0.2 else float(rng.uniform(0.1, 2.0))
+        db.add_landmark(lm_id, host, rng.normal(size=3) + [0, 0, 3], d)
+        observers = {host} | set(rng.choice(frames, size=int(rng.integers(0, 4)), replace=False).tolist())
+        for f in sorted(observers):
+            db.add_observation(lm_id, f, rng.uniform(0, 640, size=2))
+        seen[lm_id] = (d, observers)
+    for frame in frames:
+        expected = sum(1 for d, obs in seen.values()
+                       if frame in obs and d > 0 and len((obs - {frame}) & set(keyframes)) >= 2)
+        assert db.num_scale_links(frame, keyframes) == expected
+    assert 0 < db.num_scale_links(15, keyframes) < len(db.observed_in(15))
+    assert db.num_scale_links(15, keyframes[:1]) == 0  # one keyframe carries no scale

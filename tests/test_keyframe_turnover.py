@@ -218,3 +218,37 @@ def test_keyframe_age_is_a_time_horizon_that_keeps_three_keyframes():
     # without timestamps the rule cannot act
     win2 = PlaneWindow(frames, config=cfg, seed=6).win
     assert frames_to_marginalize(win2, cfg) == []
+
+
+# ------------------------------------------------------------------ scale-link keyframe
+def test_scale_link_keyframe_is_taken_whenever_too_few_landmarks_carry_the_scale(monkeypatch):
+    """``keyframe_min_scale_links = N``: on the pre-rendered ``rotation`` asset, every
+    keyframe decision that counted fewer than N finite landmarks seen in two keyframes (and
+    came more than ``min_frames_after_keyframe`` frames after a keyframe) inserted one, and
+    the count of each decision is the brute-force count over the window."""
+    from pathlib import Path
+
+    from granite.backend.landmarks import LandmarkDatabase
+    from granite.io import open_dataset
+
+    calls = []
+    count = LandmarkDatabase.num_scale_links
+
+    def recording(self, frame_id, keyframes):
+        keyframes = list(keyframes)
+        n = count(self, frame_id, keyframes)
+        expected = sum(1 for lm in self.observed_in(frame_id)
+                       if self.inverse_distances(np.array([lm]))[0] > 0.0
+                       and len(set(self.observations(lm)) & (set(keyframes) - {frame_id})) >= 2)
+        calls.append((frame_id, n, expected))
+        return n
+
+    monkeypatch.setattr(LandmarkDatabase, "num_scale_links", recording)
+    ds = open_dataset(Path(__file__).resolve().parents[1] / "assets" / "sequences" / "rotation")
+    links = 55  # the flight's counts are 51-57 without the rule
+    vo = MonocularVO(ds.calibration.camera(), VoConfig.from_dict({"estimator": {"keyframe_min_scale_links": links}}))
+    diags = {i: vo.process(i, f.timestamp, f.image).diagnostics for i, f in enumerate(ds.frames(0, len(ds)))}
+    assert calls and all(n == expected for _, n, expected in calls)
+    fired = [f for f, n, _ in calls if n < links]
+    assert fired and len(fired) < len(calls)
+    assert all(diags[f].keyframe for f in fired)

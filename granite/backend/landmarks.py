@@ -422,6 +422,18 @@ class LandmarkDatabase:
         """Ids of the landmarks observed in a frame."""
         return set(self._obs_in_frame.get(frame_id, ()))
 
+    def num_scale_links(self, frame_id: int, keyframes: Iterable[int]) -> int:
+        """Finite landmarks (``d > 0``) observed in ``frame_id`` and in at least two of
+        ``keyframes`` other than it (the host's own observation counts): those that carry the
+        map's scale to the frame. A landmark seen in two frames only fixes their relative pose
+        up to the length of the baseline."""
+        kfs = set(keyframes) - {frame_id}
+        ids = [lm for lm in self._obs_in_frame.get(frame_id, ())
+               if sum(1 for f in self._obs[lm] if f in kfs) >= 2]
+        if not ids:
+            return 0
+        return int(np.count_nonzero(self.inverse_distances(np.asarray(ids, dtype=np.int64)) > 0.0))
+
     def remove_frame(self, frame_id: int) -> list[int]:
         """Drop all observations made in a frame and all landmarks it hosts; returns the ids
         of the removed landmarks."""

@@ -108,6 +108,13 @@ class EstimatorConfig:
             keyframe's by more than the factor ``1 + keyframe_depth_change`` (the scene scale
             changed: climb, descent), at least ``min_frames_after_keyframe`` frames after a
             keyframe (:func:`granite.estimator.keyframes.median_depth`).
+        keyframe_min_scale_links: not in the reference (0: off): a keyframe (the previous
+            frame) is also taken when fewer than this many finite landmarks of the current
+            frame are observed in two keyframes or more (their host counts), at least
+            ``min_frames_after_keyframe`` frames after a keyframe. A landmark seen in two
+            keyframes only fixes their relative pose up to the baseline's length, so a new
+            keyframe whose landmarks all come from such pairs carries no scale from the map
+            once the frames between leave the window (docs/estimator.md).
         refind_enabled: not in the reference: a mapped frame observing fewer than
             ``refind_below_finite`` finite landmarks re-finds the window's others from their
             predicted positions, tracking their host keyframe's patch
@@ -173,6 +180,7 @@ class EstimatorConfig:
     init_keep_reference: bool = spec_field(True, origin="ours", reference=False)
     keyframe_on_invalid_entropy: bool = spec_field(True)
     keyframe_depth_change: float = spec_field(0.0, 0.0, 100.0, origin="ours", reference=0.0)
+    keyframe_min_scale_links: int = spec_field(0, 0, 100000, origin="ours", reference=0)
     refind_enabled: bool = spec_field(False, origin="ours")
     refind_below_finite: int = spec_field(30, 0, 100000, origin="ours")
     refind_fb_threshold_sq: float = spec_field(0.3, 0.0, 1e4, lo_open=True, origin="ours")

@@ -255,6 +255,9 @@ class MonocularVO:
         if (not take and est.keyframe_depth_change > 0.0 and finite >= est.min_finite_observations
                 and self.selector.frames_since_keyframe > est.min_frames_after_keyframe):
             take = self._scene_scale_changed(frame_id)
+        if (not take and est.keyframe_min_scale_links > 0 and finite >= est.min_finite_observations
+                and len(win.keyframe_ids) >= 2 and self.selector.frames_since_keyframe > est.min_frames_after_keyframe):
+            take = win.landmarks.num_scale_links(frame_id, win.keyframe_ids) < est.keyframe_min_scale_links
         inserted = take and not win.is_keyframe(frame_id) and self._insert_keyframe(
             frame_id, forced=finite + infinite < est.keyframe_min_connected, triangulate=measured)
         if measured:
