@@ -29,6 +29,7 @@ from granite.backend import (
     scale_drift_task,
 )
 from granite.backend.reprojection import reprojection_residuals
+from granite.backend.scale_drift import NO_SCALE_ANCHOR, NO_SCALE_LINK
 from granite.backend.synthetic import make_scene
 from granite.estimator.diagnostics import FrameDiagnostics, diagnostics_to_csv, read_diagnostics
 from granite.geometry import decoupled_increment, so3_exp
@@ -136,7 +137,7 @@ def test_no_scale_anchor_is_not_defined_and_holding_the_oldest_keyframe_fixed_wo
         win = _window(scene, ident, 1.0, scale_fix=False, marginalize_first=marg)
         res = scale_drift_indicator(win)
         assert res.value is None and res.value_ref is None
-        assert "scale" in res.reason
+        assert res.reason == NO_SCALE_ANCHOR
         assert res.lambda_min <= 1e-11 * res.lambda_max
     # the trap: with the propagated gauge prior, fixing the oldest keyframe's absolute pose
     # (instead of marginalising it) turns that prior into scale information that does not exist
@@ -455,3 +456,35 @@ def test_monte_carlo_log_scale_spread_matches_the_indicator():
     spread = float(np.std(stats))
     print(f"Monte Carlo spread {spread:.5f}, Λ {res.value:.5f}")
     assert spread == pytest.approx(res.value, rel=0.25), (spread, res.value)
+
+
+def test_links_seen_by_landmark_pairs_only_carry_no_scale_and_say_so():
+    """Every landmark seen in its host and one more frame: the scale fix anchors the first
+    link, and no landmark seen in three keyframes carries that scale to the others (two-view
+    geometry has none), so Λ is not defined, for that reason, not for a missing anchor."""
+    scene = make_scene(num_frames=6, num_points=300, seed=4, obs_per_landmark=2)
+    res = scale_drift_indicator(_window(scene, _world(np.eye(3), np.zeros(3), 1.0), 1.0,
+                                        scale_fix=True, marginalize_first=False))
+    assert res.value is None and res.reason == NO_SCALE_LINK
+    assert res.lambda_min <= 1e-11 * res.lambda_max
+    # the same scene with landmarks seen in four frames carries the scale along the chain
+    scene = make_scene(num_frames=6, num_points=300, seed=4, obs_per_landmark=4)
+    res = scale_drift_indicator(_window(scene, _world(np.eye(3), np.zeros(3), 1.0), 1.0,
+                                        scale_fix=True, marginalize_first=False))
+    assert res.defined and res.reason == ""
+
+
+def test_the_null_direction_names_the_reason():
+    """``H_t`` with a null direction along all relative translations (the scale of the whole
+    chain) against one along a single link's translation."""
+    rng = np.random.default_rng(3)
+    t = rng.normal(size=(3, 3))
+    Q, _ = np.linalg.qr(np.column_stack([t.ravel(), rng.normal(size=(9, 8))]))
+    lam = np.concatenate([[0.0], rng.uniform(1.0, 10.0, 8)])
+    *_, reason = indicator_from_information((Q * lam) @ Q.T, t)
+    assert reason == NO_SCALE_ANCHOR
+    e = np.zeros(9)
+    e[3:6] = t[1] / np.linalg.norm(t[1])
+    Q, _ = np.linalg.qr(np.column_stack([e, rng.normal(size=(9, 8))]))
+    *_, reason = indicator_from_information((Q * lam) @ Q.T, t)
+    assert reason == NO_SCALE_LINK

@@ -90,3 +90,20 @@ def test_a_file_without_the_columns_reads_with_their_defaults(tmp_path):
                               for line in (header, row)) + "\n")
     (back,) = read_diagnostics(path)
     assert back.gn_iterations == 0 and back.gn_converged is None
+
+
+def test_scale_drift_reason_is_written_only_where_the_indicator_is_empty(tmp_path):
+    from granite.backend import ScaleDriftResult
+    from granite.backend.scale_drift import NO_SCALE_LINK
+    from granite.estimator.vo import _set_scale_drift
+
+    rows = [FrameDiagnostics(0.0, 0, 0, "tracking"), FrameDiagnostics(0.05, 1, 0, "tracking"),
+            FrameDiagnostics(0.10, 2, 0, "lost")]
+    _set_scale_drift(rows[0], ScaleDriftResult(None, None, 5, 1e-9, 1e5, 0.3, NO_SCALE_LINK))
+    _set_scale_drift(rows[1], ScaleDriftResult(0.02, 0.01, 5, 3.0, 1e5, 0.3, ""))
+    _set_scale_drift(rows[2], None)
+    path = tmp_path / "diagnostics.csv"
+    path.write_text(diagnostics_to_csv(rows))
+    back = read_diagnostics(path)
+    assert [r.scale_drift_reason for r in back] == [NO_SCALE_LINK, "", ""]
+    assert back[0].scale_drift_indicator is None and back[1].scale_drift_indicator == 0.02

@@ -203,7 +203,7 @@ def indicator_from_information(H_t: np.ndarray, translations: np.ndarray
     if lam_min < -INDEFINITE_REL * lam_max:
         return None, None, lam_min, lam_max, "indefinite information (round-off)"
     if not lam_min > ZERO_INFORMATION_REL * lam_max:
-        return None, None, lam_min, lam_max, "no scale information (no scale anchor)"
+        return None, None, lam_min, lam_max, _no_scale_reason(vecs[:, 0], translations)
     mean_t = float(np.mean(np.linalg.norm(translations, axis=1)))
     if not mean_t > 0.0:
         return None, None, lam_min, lam_max, "keyframes at one position"
@@ -216,6 +216,23 @@ def indicator_from_information(H_t: np.ndarray, translations: np.ndarray
     value = value if math.isfinite(value) else None
     value_ref = value_ref if value_ref is not None and math.isfinite(value_ref) else None
     return value, value_ref, lam_min, lam_max, "" if value is not None else "not finite"
+
+
+#: The null eigenvector of ``H_t`` is the scaling of the whole chain when its overlap with the
+#: stacked relative translations is at least this (1 for an exact global scale direction).
+GLOBAL_SCALE_OVERLAP = 0.9
+NO_SCALE_ANCHOR = "no scale information (no scale anchor)"
+NO_SCALE_LINK = "no scale information across a keyframe link (no landmark seen in three keyframes across it)"
+
+
+def _no_scale_reason(null_vector: np.ndarray, translations: np.ndarray) -> str:
+    """Why ``H_t`` has a null direction: the scale of the whole chain (nothing anchors it) or
+    the length of some links only (the scale is not carried across them)."""
+    t = translations.ravel()
+    norm = float(np.linalg.norm(t))
+    if norm > 0.0 and abs(float(null_vector @ t)) / norm >= GLOBAL_SCALE_OVERLAP:
+        return NO_SCALE_ANCHOR
+    return NO_SCALE_LINK
 
 
 def keyframe_system(window: SlidingWindow, include_scale_fix: bool = True) -> KeyframeSystem:

@@ -26,6 +26,11 @@ One row per processed frame (skipped frames included). Columns:
                        3 keyframes, no scale anchor, not tracking)
 ``scale_drift_indicator_ref``  the released reference code's variant of Λ (eigenvector-weighted
                        translations); empty when not defined
+``scale_drift_reason`` why Λ is empty on a frame where it was computed: fewer than 3
+                       keyframes, no scale anchor (nothing fixes the window's scale), no scale
+                       across a keyframe link (no landmark seen in three keyframes across it:
+                       the scale drift is unbounded there), non-finite or indefinite
+                       information; empty when Λ is defined or was not computed
 ``gn_iterations``      Gauss-Newton (or Levenberg-Marquardt) iterations spent on this frame:
                        its main optimisation, a new keyframe's extra iterations and the
                        re-optimisation after outlier removal
@@ -67,6 +72,7 @@ class FrameDiagnostics:
     warnings: int = 0
     scale_drift_indicator: float | None = None
     scale_drift_indicator_ref: float | None = None
+    scale_drift_reason: str = ""
     gn_iterations: int = 0
     gn_converged: bool | None = None
 

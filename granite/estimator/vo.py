@@ -489,3 +489,4 @@ def _set_scale_drift(diag: FrameDiagnostics, drift: ScaleDriftResult | None) -> 
     """The indicator fields of the diagnostics (None: not computed or not defined)."""
     diag.scale_drift_indicator = drift.value if drift is not None else None
     diag.scale_drift_indicator_ref = drift.value_ref if drift is not None else None
+    diag.scale_drift_reason = drift.reason if drift is not None and drift.value is None else ""
