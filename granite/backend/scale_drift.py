@@ -188,11 +188,14 @@ def relative_translation_information(H: np.ndarray, poses: np.ndarray) -> np.nda
     return information_schur_complement(0.5 * (H_rel + H_rel.T), keep, marg)
 
 
-def indicator_from_information(H_t: np.ndarray, translations: np.ndarray
+def indicator_from_information(H_t: np.ndarray, translations: np.ndarray,
+                               translations_lin: np.ndarray | None = None
                                ) -> tuple[float | None, float | None, float, float, str]:
     """``(Λ, Λ_ref, λ_min, λ_max, reason)`` from the relative-translation information ``H_t``
     and the relative translations (n-1, 3) (see the module docstring); ``None`` values where
-    not defined, with the reason."""
+    not defined, with the reason. ``translations_lin``: the relative translations at the
+    points ``H_t`` was linearised at (default ``translations``), whose scaling is the
+    window's scale direction (it tells a missing anchor from an unlinked keyframe)."""
     translations = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
     if not (np.all(np.isfinite(H_t)) and np.all(np.isfinite(translations))):
         return None, None, math.nan, math.nan, "non-finite information or poses"
@@ -203,7 +206,8 @@ def indicator_from_information(H_t: np.ndarray, translations: np.ndarray
     if lam_min < -INDEFINITE_REL * lam_max:
         return None, None, lam_min, lam_max, "indefinite information (round-off)"
     if not lam_min > ZERO_INFORMATION_REL * lam_max:
-        return None, None, lam_min, lam_max, _no_scale_reason(vecs[:, 0], translations)
+        return None, None, lam_min, lam_max, _no_scale_reason(
+            H_t, lam_max, translations if translations_lin is None else translations_lin)
     mean_t = float(np.mean(np.linalg.norm(translations, axis=1)))
     if not mean_t > 0.0:
         return None, None, lam_min, lam_max, "keyframes at one position"
@@ -218,19 +222,20 @@ def indicator_from_information(H_t: np.ndarray, translations: np.ndarray
     return value, value_ref, lam_min, lam_max, "" if value is not None else "not finite"
 
 
-#: The null eigenvector of ``H_t`` is the scaling of the whole chain when its overlap with the
-#: stacked relative translations is at least this (1 for an exact global scale direction).
-GLOBAL_SCALE_OVERLAP = 0.9
+#: The scaling of the whole chain (all relative translations, unit norm) has at most this
+#: fraction of λ_max(H_t) as information: nothing anchors the window's scale. The anchor of
+#: a window, a scale fix or its trace in the prior, gives it far more (measured >= 1e-4).
+UNANCHORED_REL = 1e-9
 NO_SCALE_ANCHOR = "no scale information (no scale anchor)"
 NO_SCALE_LINK = "no scale information across a keyframe link (no landmark seen in three keyframes across it)"
 
 
-def _no_scale_reason(null_vector: np.ndarray, translations: np.ndarray) -> str:
-    """Why ``H_t`` has a null direction: the scale of the whole chain (nothing anchors it) or
-    the length of some links only (the scale is not carried across them)."""
-    t = translations.ravel()
+def _no_scale_reason(H_t: np.ndarray, lam_max: float, translations: np.ndarray) -> str:
+    """Why ``H_t`` has a null direction: the scale of the whole chain is free (nothing anchors
+    it), or only the lengths of some links are (the scale is not carried across them)."""
+    t = np.asarray(translations, dtype=np.float64).ravel()
     norm = float(np.linalg.norm(t))
-    if norm > 0.0 and abs(float(null_vector @ t)) / norm >= GLOBAL_SCALE_OVERLAP:
+    if norm == 0.0 or float(t @ H_t @ t) / (norm * norm) <= UNANCHORED_REL * lam_max:
         return NO_SCALE_ANCHOR
     return NO_SCALE_LINK
 
@@ -305,7 +310,8 @@ def scale_drift_of_system(system: KeyframeSystem) -> ScaleDriftResult:
         return ScaleDriftResult(None, None, n, reason="non-finite information or poses")
     H_t = relative_translation_information(H, system.poses_lin)
     translations = relative_poses(system.poses)[:, :3, 3]
-    value, value_ref, lam_min, lam_max, reason = indicator_from_information(H_t, translations)
+    value, value_ref, lam_min, lam_max, reason = indicator_from_information(
+        H_t, translations, relative_poses(system.poses_lin)[:, :3, 3])
     mean_t = float(np.mean(np.linalg.norm(translations, axis=1)))
     return ScaleDriftResult(value, value_ref, n, lam_min, lam_max, mean_t, reason)
 
