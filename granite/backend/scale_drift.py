@@ -223,8 +223,9 @@ def indicator_from_information(H_t: np.ndarray, translations: np.ndarray,
 
 
 #: The scaling of the whole chain (all relative translations, unit norm) has at most this
-#: fraction of λ_max(H_t) as information: nothing anchors the window's scale. The anchor of
-#: a window, a scale fix or its trace in the prior, gives it far more (measured >= 1e-4).
+#: fraction of λ_max(H_t) as information: nothing anchors the window's scale. Measured on a
+#: fast 320x240 flight: 2.6e-5 .. 4.6e-5 while the prior held the scale, 2e-14 .. 2e-13
+#: after it lost it; 1e-14 on a synthetic window with the gauge prior only.
 UNANCHORED_REL = 1e-9
 NO_SCALE_ANCHOR = "no scale information (no scale anchor)"
 NO_SCALE_LINK = "no scale information across a keyframe link (no landmark seen in three keyframes across it)"
