@@ -112,6 +112,11 @@ def test_recording_holds_images_points_trajectories_and_series(run, recording):
         expected = [getattr(d, column) for d in diags.values() if getattr(d, column) is not None]
         assert len(logged) == len(expected)
         np.testing.assert_allclose(sorted(logged), sorted(expected), rtol=1e-12)
+    # 0 where Λ is defined, 1 where it found no scale information, nothing elsewhere
+    logged = [v[0] for v in _column(table, "/plots/scale_unobservable:Scalar") if v]
+    no_scale = [d for d in diags.values() if d.scale_drift_reason.startswith("no scale information")]
+    defined = [d for d in diags.values() if d.scale_drift_indicator is not None]
+    assert sorted(logged) == [0.0] * len(defined) + [1.0] * len(no_scale)
     # Keyframe frustums: every frame shows the window's keyframes (one strip per keyframe).
     strips = _column(table, "/world/keyframes:LineStrip3D")
     shown = [len(v) for f, v in zip(frames, strips) if v is not None]
@@ -228,3 +233,17 @@ def test_run_that_fails_leaves_no_recording(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "simulated failure" in err
     assert not rrd.parent.exists() or not any(rrd.parent.iterdir())
+
+
+
+def test_scale_unobservable_marks_frames_whose_window_has_no_scale():
+    from granite.backend.scale_drift import NO_SCALE_ANCHOR, NO_SCALE_LINK
+    from granite.visualization.run_view import scale_unobservable
+
+    def diag(value=None, reason=""):
+        return FrameDiagnostics(0.0, 0, 0, "tracking", scale_drift_indicator=value, scale_drift_reason=reason)
+    assert scale_unobservable(diag(0.02)) == 0.0
+    assert scale_unobservable(diag(reason=NO_SCALE_LINK)) == 1.0
+    assert scale_unobservable(diag(reason=NO_SCALE_ANCHOR)) == 1.0
+    assert scale_unobservable(diag(reason="fewer than 3 keyframes")) is None
+    assert scale_unobservable(diag()) is None

@@ -18,7 +18,9 @@ Entity layout (world frame z up for the test-bench; all poses ``T_w_c``):
                                 the scale-drift indicator Λ ``scale_drift_indicator`` and its
                                 reference variant ``scale_drift_indicator_ref``, and
                                 ``log10_scale_drift_indicator``: rerun 0.23's time-series views
-                                have no logarithmic axis, and Λ spans decades)
+                                have no logarithmic axis, and Λ spans decades;
+                                ``scale_unobservable``: 1 where Λ found no scale information
+                                in the window, 0 where it is defined)
 ==============================  ==========================================================
 
 Timelines: ``frame`` (sequence, dataset frame index) and ``time`` (seconds since the first
@@ -83,7 +85,8 @@ def frustum_wireframes(poses_w_c: np.ndarray, K: np.ndarray, resolution, depth: 
 def default_blueprint() -> rrb.Blueprint:
     """Camera image with tracks beside the 3D world; underneath, the time series: point
     counts, negative entropy with keyframe events, the relative scale error, and beside it the
-    scale-drift indicator Λ (Eq. 17 and the reference variant) and log10 Λ."""
+    scale-drift indicator Λ (Eq. 17 and the reference variant) and log10 Λ with
+    ``scale_unobservable`` (1 where Λ found no scale information, 0 where it is defined)."""
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
@@ -101,8 +104,8 @@ def default_blueprint() -> rrb.Blueprint:
                                    origin="plots", contents=[
                                        "plots/scale_drift_indicator",
                                        "plots/scale_drift_indicator_ref"]),
-                rrb.TimeSeriesView(name="log10 Λ", origin="plots", contents=[
-                    "plots/log10_scale_drift_indicator"]),
+                rrb.TimeSeriesView(name="log10 Λ; 1 = no scale information", origin="plots", contents=[
+                    "plots/log10_scale_drift_indicator", "plots/scale_unobservable"]),
             ),
             row_shares=[3, 1],
         ),

@@ -54,6 +54,16 @@ def _aligned_pose(sim, T_w_c: np.ndarray) -> np.ndarray:
     return T
 
 
+
+def scale_unobservable(diag: FrameDiagnostics) -> float | None:
+    """1 where Λ_scaledrift found no scale information in the window (no anchor, or a keyframe
+    link that carries none: the scale drift is unbounded), 0 where Λ is defined, None where
+    neither (not computed, fewer than 3 keyframes, numerical reasons)."""
+    if getattr(diag, "scale_drift_indicator", None) is not None:
+        return 0.0
+    reason = getattr(diag, "scale_drift_reason", "")
+    return 1.0 if reason.startswith("no scale information") else None
+
 class RunView:
     """Builds the recording of one run (entity layout: :mod:`granite.visualization.rerun_logger`)."""
 
@@ -101,6 +111,9 @@ class RunView:
         lam_ref = getattr(diag, "scale_drift_indicator_ref", None)
         if lam_ref is not None:
             log.log_scalar("scale_drift_indicator_ref", lam_ref)
+        unobservable = scale_unobservable(diag)
+        if unobservable is not None:
+            log.log_scalar("scale_unobservable", unobservable)
         self._records.append(record)
         self.seconds += time.perf_counter() - start
 
