@@ -107,3 +107,32 @@ def test_scale_drift_reason_is_written_only_where_the_indicator_is_empty(tmp_pat
     back = read_diagnostics(path)
     assert [r.scale_drift_reason for r in back] == [NO_SCALE_LINK, "", ""]
     assert back[0].scale_drift_indicator is None and back[1].scale_drift_indicator == 0.02
+
+
+def test_run_summary_and_report_count_the_optimiser_and_the_scale(tmp_path):
+    """``summary.json``'s optimiser and Λ counts against counts made here, and the report's
+    lines that state them (the no-scale line only when there is such a frame)."""
+    from granite.backend.scale_drift import NO_SCALE_ANCHOR, NO_SCALE_LINK
+    from granite.estimator.runner import optimization_summary
+    from granite.visualization.report import Report, report_markdown
+
+    rows = [FrameDiagnostics(0.0, 0, 0, "init"),
+            FrameDiagnostics(0.05, 1, 0, "tracking", gn_iterations=3, gn_converged=True,
+                             scale_drift_reason="fewer than 3 keyframes"),
+            FrameDiagnostics(0.10, 2, 0, "tracking", gn_iterations=9, gn_converged=False,
+                             scale_drift_reason=NO_SCALE_LINK),
+            FrameDiagnostics(0.15, 3, 0, "tracking", gn_iterations=4, gn_converged=True,
+                             scale_drift_indicator=0.02),
+            FrameDiagnostics(0.20, 4, 0, "tracking", gn_iterations=7, gn_converged=False,
+                             scale_drift_reason=NO_SCALE_ANCHOR)]
+    out = optimization_summary(rows)
+    assert out == {"gn_mean_iterations": (3 + 9 + 4 + 7) / 4, "gn_unconverged_frames": 2,
+                   "gn_optimized_frames": 4, "scale_drift_defined_frames": 1,
+                   "scale_drift_no_scale_frames": 2}
+    summary = {"frames": 5, "estimated_frames": 5, "skipped_frames": 0, "restarts": 0,
+               "submaps": 1, "keyframes": 2, "mean_processing_ms": 10.0, **out}
+    text = report_markdown("t", [], summary, None, None, Report())
+    assert "- Gauss-Newton: 5.8 iterations per frame" in text and "converging on 2 of 4 frames" in text
+    assert "Λ_scaledrift defined on 1 frames; **no scale information on 2 frames**" in text
+    quiet = report_markdown("t", [], {**summary, **optimization_summary(rows[:2] + rows[3:4])}, None, None, Report())
+    assert "no scale information" not in quiet and "Λ_scaledrift defined on 1 frames" in quiet

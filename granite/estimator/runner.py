@@ -255,7 +255,25 @@ def summary_dict(result: RunResult, extra: dict | None = None) -> dict:
         "mean_processing_ms": mean_ms,
         "frames_per_second": float(1000.0 / mean_ms) if mean_ms > 0 else None,
         "interrupted": result.interrupted,
+        **optimization_summary(result.diagnostics),
         **(extra or {}),
+    }
+
+
+def optimization_summary(diagnostics: list[FrameDiagnostics]) -> dict:
+    """What ``summary.json`` says of Gauss-Newton and of Λ_scaledrift, from the diagnostics:
+    ``gn_mean_iterations`` and ``gn_unconverged_frames`` over the frames whose main
+    optimisation ran, ``scale_drift_defined_frames`` and ``scale_drift_no_scale_frames`` (Λ
+    found no scale information: no anchor, or a keyframe link that carries none)."""
+    optimized = [d for d in diagnostics if d.gn_converged is not None]
+    return {
+        "gn_mean_iterations": (float(np.mean([d.gn_iterations for d in optimized]))
+                               if optimized else None),
+        "gn_unconverged_frames": sum(1 for d in optimized if not d.gn_converged),
+        "gn_optimized_frames": len(optimized),
+        "scale_drift_defined_frames": sum(1 for d in diagnostics if d.scale_drift_indicator is not None),
+        "scale_drift_no_scale_frames": sum(1 for d in diagnostics
+                                           if d.scale_drift_reason.startswith("no scale information")),
     }
 
 

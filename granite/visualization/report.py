@@ -325,6 +325,17 @@ def report_markdown(title: str, header: Sequence[str], summary: dict, evaluation
               f"- restarts: {summary['restarts']}, sub-maps: {summary['submaps']}, keyframes: {summary['keyframes']}",
               f"- VO time: {summary['mean_processing_ms']:.1f} ms per frame"
               + (f" ({summary['frames_per_second']:.1f} fps)" if summary.get("frames_per_second") else "")]
+    if summary.get("gn_mean_iterations") is not None:
+        lines.append(f"- Gauss-Newton: {summary['gn_mean_iterations']:.1f} iterations per frame; the main "
+                     f"optimisation used all its iterations without converging on "
+                     f"{summary['gn_unconverged_frames']} of {summary['gn_optimized_frames']} frames")
+    if "scale_drift_defined_frames" in summary:
+        line = f"- Λ_scaledrift defined on {summary['scale_drift_defined_frames']} frames"
+        if summary.get("scale_drift_no_scale_frames"):
+            line += (f"; **no scale information on {summary['scale_drift_no_scale_frames']} frames**: "
+                     "nothing carries the map's scale there, the scale drift is unbounded "
+                     "(`scale_drift_reason` in `diagnostics.csv`)")
+        lines.append(line)
     if summary.get("skipped_by_reason") or summary.get("frontend_rejections"):
         reasons = {**summary.get("skipped_by_reason", {}), **summary.get("frontend_rejections", {})}
         lines.append("- skipped: " + "; ".join(f"{n} × {r}" for r, n in reasons.items()))
