@@ -51,6 +51,7 @@ import math
 from dataclasses import MISSING, astuple, dataclass, fields
 from pathlib import Path
 
+from granite.backend.scale_drift import NO_SCALE_ANCHOR, NO_SCALE_LINK
 from granite.errors import InputError
 from granite.io import atomic_write_text
 
@@ -75,6 +76,12 @@ class FrameDiagnostics:
     scale_drift_reason: str = ""
     gn_iterations: int = 0
     gn_converged: bool | None = None
+
+    @property
+    def no_scale_information(self) -> bool:
+        """Λ found no scale information in the window (no anchor, or a keyframe link that
+        carries none): the scale drift is unbounded on this frame."""
+        return self.scale_drift_reason in (NO_SCALE_ANCHOR, NO_SCALE_LINK)
 
 
 COLUMNS = tuple(f.name for f in fields(FrameDiagnostics))

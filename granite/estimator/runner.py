@@ -272,8 +272,7 @@ def optimization_summary(diagnostics: list[FrameDiagnostics]) -> dict:
         "gn_unconverged_frames": sum(1 for d in optimized if not d.gn_converged),
         "gn_optimized_frames": len(optimized),
         "scale_drift_defined_frames": sum(1 for d in diagnostics if d.scale_drift_indicator is not None),
-        "scale_drift_no_scale_frames": sum(1 for d in diagnostics
-                                           if d.scale_drift_reason.startswith("no scale information")),
+        "scale_drift_no_scale_frames": sum(1 for d in diagnostics if d.no_scale_information),
     }
 
 

@@ -54,15 +54,14 @@ def _aligned_pose(sim, T_w_c: np.ndarray) -> np.ndarray:
     return T
 
 
-
 def scale_unobservable(diag: FrameDiagnostics) -> float | None:
-    """1 where Λ_scaledrift found no scale information in the window (no anchor, or a keyframe
-    link that carries none: the scale drift is unbounded), 0 where Λ is defined, None where
-    neither (not computed, fewer than 3 keyframes, numerical reasons)."""
-    if getattr(diag, "scale_drift_indicator", None) is not None:
+    """1 where Λ_scaledrift found no scale information in the window
+    (:attr:`FrameDiagnostics.no_scale_information`), 0 where Λ is defined, None where neither
+    (not computed, fewer than 3 keyframes, numerical reasons)."""
+    if diag.scale_drift_indicator is not None:
         return 0.0
-    reason = getattr(diag, "scale_drift_reason", "")
-    return 1.0 if reason.startswith("no scale information") else None
+    return 1.0 if diag.no_scale_information else None
+
 
 class RunView:
     """Builds the recording of one run (entity layout: :mod:`granite.visualization.rerun_logger`)."""
