@@ -256,7 +256,10 @@ def cost(dataset_path: str) -> dict:
         return lambda: res
 
     vo_module.scale_drift_task = timed_task
-    run_vo(open_dataset(dataset_path), VoConfig(), progress=False, concurrent=False)
+    try:
+        run_vo(open_dataset(dataset_path), VoConfig(), progress=False, concurrent=False)
+    finally:  # the VO module is shared with whatever runs after (e.g. the tests)
+        vo_module.scale_drift_task = scale_drift_task
     if not samples:
         raise SystemExit(f"error: the window of {dataset_path} never held 3 keyframes")
     arr = np.array(samples)
