@@ -13,7 +13,7 @@ from granite.backend.stereographic import (
 )
 from granite.backend.priors import ScaleFix, no_motion_terms
 from granite.backend.reprojection import linearize, reprojection_residuals
-from granite.backend.schur import back_substitute, schur_reduce
+from granite.backend.schur import back_substitute, relative_map, schur_reduce
 from granite.backend.synthetic import build_window, make_scene
 from granite.camera import make_camera
 from granite.geometry import decoupled_increment
@@ -83,11 +83,13 @@ def test_reprojection_jacobians_match_finite_differences(camera_name):
     for k in range(pk.num_observations):
         h, t = host[k], pk.obs_tgt[k]
         if h == t:
-            assert np.all(lin.J_h[k] == 0) and np.all(lin.J_t[k] == 0)
+            assert np.all(lin.J_h[k] == 0)
             continue
         scale = np.abs(num_pose[k]).max() + 1.0
         np.testing.assert_allclose(lin.J_h[k], num_pose[k, :, h], atol=1e-5 * scale)
-        np.testing.assert_allclose(lin.J_t[k], num_pose[k, :, t], atol=1e-5 * scale)
+        # the target's Jacobian is the host's times the relative map of the two centres
+        J_t = lin.J_h[k] @ relative_map(lin.t_lin[h], lin.t_lin[t])
+        np.testing.assert_allclose(J_t, num_pose[k, :, t], atol=1e-5 * scale)
     s0, d0 = pk.lm_s.copy(), pk.lm_d.copy()
     for c in range(3):
         rs = []
@@ -109,7 +111,7 @@ def test_reprojection_jacobians_match_finite_differences(camera_name):
     # at d = 0 the translation does not act on the residual
     inf_obs = np.flatnonzero((pk.obs_lm == 3) & (host != pk.obs_tgt))
     assert inf_obs.size > 0
-    assert np.all(lin.J_h[inf_obs][:, :, :3] == 0) and np.all(lin.J_t[inf_obs][:, :, :3] == 0)
+    assert np.all(lin.J_h[inf_obs][:, :, :3] == 0)
 
 
 def test_first_estimate_jacobians_use_linearisation_poses():
@@ -120,10 +122,10 @@ def test_first_estimate_jacobians_use_linearisation_poses():
     moved = problem.poses.copy()
     moved[1] = decoupled_increment(moved[1], np.array([0.01, -0.02, 0.01, 0.003, 0.0, -0.002]))
     at_lin = linearize(win.camera, pk, poses_lin, poses_lin, 4.0, 1e9, 1.0)
-    J_h, J_t, J_l = at_lin.J_h.copy(), at_lin.J_t.copy(), at_lin.J_l.copy()
+    J_h, J_l = at_lin.J_h.copy(), at_lin.J_l.copy()
     fej = linearize(win.camera, pk, moved, poses_lin, 4.0, 1e9, 1.0)
     np.testing.assert_array_equal(fej.J_h, J_h)
-    np.testing.assert_array_equal(fej.J_t, J_t)
+    np.testing.assert_array_equal(fej.t_lin, poses_lin[:, :3, 3])
     np.testing.assert_array_equal(fej.J_l, J_l)
     res, _ = reprojection_residuals(win.camera, pk, moved)
     np.testing.assert_allclose(fej.r, res, atol=1e-12)
@@ -163,7 +165,7 @@ def test_linearisation_validity_follows_the_camera_projection(camera_name):
     assert 0 < expected.sum() < len(expected)  # both kinds occur
     np.testing.assert_array_equal(lin.valid, expected)
     assert np.all(lin.w[~expected] == 0.0)
-    for J in (lin.r, lin.J_h, lin.J_t, lin.J_l):
+    for J in (lin.r, lin.J_h, lin.J_l):
         assert np.all(J[~expected] == 0.0)
     np.testing.assert_allclose(lin.r[expected], (uv - pk.obs_uv)[expected], atol=1e-9)
 
@@ -212,7 +214,7 @@ def test_schur_complement_matches_dense_normal_equations():
     b = J.T @ (w * r)
     lin = linearize(win.camera, pk, problem.poses, problem.poses, 1.0 / 0.25, 1e6, 1.0)
     H_raw, b_raw, H_red, b_red, Hll_inv, b_l = schur_reduce(
-        K, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.r, lin.w, lin.J_h, lin.J_t, lin.J_l, 0.0, 0.0)
+        K, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.r, lin.w, lin.J_h, lin.J_l, lin.t_lin, 0.0, 0.0)
     P = slice(0, 6 * K)
     L = slice(6 * K, None)
     scale = np.abs(H).max()
@@ -225,8 +227,8 @@ def test_schur_complement_matches_dense_normal_equations():
     np.testing.assert_allclose(b_l.reshape(-1), b[L], atol=1e-6 * np.abs(b).max())
     # back-substitution: the landmark part of the full Newton step for a given pose step
     dx = np.random.default_rng(3).normal(size=6 * K) * 1e-3
-    dl = back_substitute(dx, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.w, lin.J_h, lin.J_t,
-                         lin.J_l, Hll_inv, b_l)
+    dl = back_substitute(dx, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.w, lin.J_h, lin.J_l,
+                         lin.t_lin, Hll_inv, b_l)
     expected = -np.linalg.solve(H[L, L], b[L] + H[L, P] @ dx)
     np.testing.assert_allclose(dl.reshape(-1), expected, rtol=1e-5, atol=1e-9)
 
@@ -298,8 +300,9 @@ def _ill_conditioned_landmarks(damping: float):
     column (condition ~1e7)."""
     rng = np.random.default_rng(7)
     K = 4
+    t_lin = 3.0 * rng.normal(size=(K, 3))  # camera centres: the target Jacobians J_h M
     lm_ptr, lm_host, obs_tgt = [0], [], []
-    J_h, J_t, J_l, r, w = [], [], [], [], []
+    J_h, J_l, r, w = [], [], [], []
     kinds = ["good"] * 6 + ["single"] * 6 + ["dependent"] * 4
     for kind in kinds:
         h = int(rng.integers(K))
@@ -308,8 +311,7 @@ def _ill_conditioned_landmarks(damping: float):
             targets = [targets[int(rng.integers(len(targets)))]]
         cols = rng.normal(size=(2, 3))
         for t in [h] + targets:
-            J_h.append(800.0 * rng.normal(size=(2, 6)))
-            J_t.append(800.0 * rng.normal(size=(2, 6)))
+            J_h.append(800.0 * rng.normal(size=(2, 6)) if t != h else np.zeros((2, 6)))
             jl = 800.0 * rng.normal(size=(2, 3))
             if kind == "dependent":  # inverse-distance column ~ parallel to the first one
                 jl[:, 2] = 3.0 * jl[:, 0] + 1e-7 * 800.0 * rng.normal(size=2)
@@ -324,13 +326,18 @@ def _ill_conditioned_landmarks(damping: float):
         lm_ptr.append(len(obs_tgt))
     arr = lambda x, dt=np.float64: np.ascontiguousarray(np.array(x, dtype=dt))  # noqa: E731
     return (K, arr(lm_ptr, np.int64), arr(lm_host, np.int64), arr(obs_tgt, np.int64), arr(r),
-            arr(w), arr(J_h), arr(J_t), arr(J_l), damping)
+            arr(w), arr(J_h), arr(J_l), arr(t_lin), damping)
 
 
-def _projected_reference(K, lm_ptr, lm_host, obs_tgt, r, w, J_h, J_t, J_l, damping):
+def _skew(d):
+    return np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
+
+
+def _projected_reference(K, lm_ptr, lm_host, obs_tgt, r, w, J_h, J_l, t_lin, damping):
     """Reduced system by orthogonal projection with numpy's SVD (stable): per landmark
     ``A_p^T (I - U U^T) A_p`` with ``U`` the left singular vectors of the damped, weighted
-    landmark Jacobian above a relative rank threshold."""
+    landmark Jacobian above a relative rank threshold; the absolute target Jacobian is
+    ``J_h [[-I, [t_h - t_t]x], [0, -I]]``, written out here independently of the kernel."""
     H = np.zeros((6 * K, 6 * K))
     b = np.zeros(6 * K)
     for i in range(len(lm_host)):
@@ -342,8 +349,11 @@ def _projected_reference(K, lm_ptr, lm_host, obs_tgt, r, w, J_h, J_t, J_l, dampi
         for row, k in enumerate(ks):
             s = np.sqrt(w[k])
             if obs_tgt[k] != h:
+                t = obs_tgt[k]
+                M = -np.eye(6)
+                M[:3, 3:] = _skew(t_lin[h] - t_lin[t])
                 A_p[2 * row:2 * row + 2, 6 * h:6 * h + 6] += s * J_h[k]
-                A_p[2 * row:2 * row + 2, 6 * obs_tgt[k]:6 * obs_tgt[k] + 6] += s * J_t[k]
+                A_p[2 * row:2 * row + 2, 6 * t:6 * t + 6] += s * J_h[k] @ M
             A_l[2 * row:2 * row + 2] = s * J_l[k]
             rr[2 * row:2 * row + 2] = s * r[k]
         A_l[2 * len(ks):] = np.sqrt(damping) * np.eye(3)
@@ -361,7 +371,7 @@ def test_schur_reduce_without_rhs_gives_the_same_matrices():
     pk = problem.packed
     lin = linearize(win.camera, pk, problem.poses, problem.poses, 4.0, 1.0, 1.0)
     args = (len(problem.frame_ids), pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.r, lin.w, lin.J_h,
-            lin.J_t, lin.J_l, 1e-9, 0.0)
+            lin.J_l, lin.t_lin, 1e-9, 0.0)
     full = schur_reduce(*args)
     mats = schur_reduce(*args, False)
     assert np.any(full[2] != 0.0) and np.any(full[3] != 0.0)
@@ -381,7 +391,7 @@ def test_schur_reduce_is_accurate_on_near_singular_landmark_blocks(damping):
     np.testing.assert_allclose(b_red, b_ref, rtol=0, atol=1e-8 * np.abs(b_raw).max())
     assert np.linalg.eigvalsh(H_red)[0] >= -1e-12 * scale
     # the 3x3 inverses: exact for the well-conditioned landmarks
-    K, lm_ptr, lm_host, obs_tgt, r, w, J_h, J_t, J_l, _ = args
+    K, lm_ptr, lm_host, obs_tgt, r, w, J_h, J_l, t_lin, _ = args
     for i in range(6):
         ks = [k for k in range(lm_ptr[i], lm_ptr[i + 1]) if w[k] > 0.0]
         Hll = sum(w[k] * J_l[k].T @ J_l[k] for k in ks) + damping * np.eye(3)

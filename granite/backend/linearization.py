@@ -67,7 +67,7 @@ class WindowCost:
         pk = problem.packed
         return ReducedSystem(*schur_reduce(
             len(problem.frame_ids), pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.r, lin.w, lin.J_h,
-            lin.J_t, lin.J_l, self.config.landmark_damping, lm_lambda, with_rhs))
+            lin.J_l, lin.t_lin, self.config.landmark_damping, lm_lambda, with_rhs))
 
     def prior_terms(self, problem: WindowProblem, pairs: list[tuple[int, int]],
                     include: set[int] | None = None, with_rhs: bool = True):

@@ -14,6 +14,10 @@ Pose increments are the decoupled left increment of paper Eq. 14 on ``T_w_c``
     dp_t/dv_t = -d R_w_t^T          dp_t/dw_t =  R_w_t^T [q]_x
     dp_t/ds   =  R_t_h db/ds        dp_t/dd   =  t_t_h
 
+Since ``[q]_x = [R_w_h b]_x + d [t_w_h - t_w_t]_x``, the target's Jacobian is the host's
+times ``M = [[-I, [t_w_h - t_w_t]_x], [0, -I]]``: only ``J_h`` is written, and the backend
+works with the relative increment ``dx_h + M dx_t`` (:func:`granite.backend.schur.schur_reduce`).
+
 Observations in the host frame itself give ``p_t = b`` and constrain the bearing only.
 For a point at infinity (``d == 0``) the column ``dp_t/dd`` is set to zero (as in the
 reference): such a point constrains rotations only and keeps ``d = 0`` until the frontend
@@ -86,8 +90,8 @@ def _obs_weight(level: int, d: float, inv_var: float, inf_factor: float) -> floa
 
 
 def _linearize_fused(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d, obs_lm,
-                     obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor, r, w, J_h, J_t,
-                     J_l, valid):
+                     obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor, r, w, J_h, J_l,
+                     valid):
     """Typing stub of :func:`linearize_fused`'s loop for one camera model (njit only)."""
     raise NotImplementedError
 
@@ -95,7 +99,7 @@ def _linearize_fused(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d,
 @overload(_linearize_fused, prefer_literal=True, jit_options={"cache": True})
 def _linearize_fused_loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d, obs_lm,
                           obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor, r, w, J_h,
-                          J_t, J_l, valid):
+                          J_l, valid):
     """The loop specialised on the camera model (its per-point projection inlined)."""
     if not isinstance(model, types.IntegerLiteral):
         return None
@@ -103,7 +107,7 @@ def _linearize_fused_loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, 
     nk = batch.num_intrinsics(model_id)
 
     def loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d, obs_lm, obs_tgt,
-             obs_uv, obs_level, inv_var, huber, inf_factor, r, w, J_h, J_t, J_l, valid):
+             obs_uv, obs_level, inv_var, huber, inf_factor, r, w, J_h, J_l, valid):
         # one observation's intermediates (row 0): point at the estimate and at the
         # linearisation point, its pixels, d pixel / d point, 3-D Jacobians
         p = np.empty((1, 3))
@@ -115,9 +119,7 @@ def _linearize_fused_loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, 
         no_jp = np.empty((0, 2, 3))
         no_jk = np.empty((0, 2, nk))
         J_h3 = np.empty((3, 6))
-        J_t3 = np.empty((3, 6))
         J_l3 = np.empty((3, 3))
-        ql = np.empty(3)
         rb = np.empty(3)
         b = np.empty(3)
         Jb = np.empty((3, 2))
@@ -137,7 +139,6 @@ def _linearize_fused_loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, 
                     J_l3[c, 2] = 0.0
                     for c2 in range(6):
                         J_h3[c, c2] = 0.0
-                        J_t3[c, c2] = 0.0
             else:
                 _point_in_target(poses[h], poses[t], b, d, p, 0)
                 Th = poses_lin[h]
@@ -145,7 +146,6 @@ def _linearize_fused_loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, 
                 _point_in_target(Th, Tt, b, d, p_lin, 0)
                 for c in range(3):
                     rb[c] = Th[c, 0] * b[0] + Th[c, 1] * b[1] + Th[c, 2] * b[2]
-                    ql[c] = rb[c] + (Th[c, 3] - Tt[c, 3]) * d
                 for c in range(3):
                     # row c of R_w_t^T is column c of R_w_t
                     a0 = Tt[0, c]
@@ -167,16 +167,10 @@ def _linearize_fused_loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, 
                     J_h3[c, 0] = d * a0
                     J_h3[c, 1] = d * a1
                     J_h3[c, 2] = d * a2
-                    J_t3[c, 0] = -d * a0
-                    J_t3[c, 1] = -d * a1
-                    J_t3[c, 2] = -d * a2
                     # a^T [x]_x = (a x x)^T = [a1 x2 - a2 x1, a2 x0 - a0 x2, a0 x1 - a1 x0]
                     J_h3[c, 3] = -(a1 * rb[2] - a2 * rb[1])
                     J_h3[c, 4] = -(a2 * rb[0] - a0 * rb[2])
                     J_h3[c, 5] = -(a0 * rb[1] - a1 * rb[0])
-                    J_t3[c, 3] = a1 * ql[2] - a2 * ql[1]
-                    J_t3[c, 4] = a2 * ql[0] - a0 * ql[2]
-                    J_t3[c, 5] = a0 * ql[1] - a1 * ql[0]
             ok = batch.project_point(model_id, kp, p_lin, 0, uv, J_pi, J_k, True)
             if not same_lin:  # residual at the estimate, Jacobians at the linearisation point
                 ok = batch.project_point(model_id, kp, p, 0, uv_res, no_jp, no_jk,
@@ -191,7 +185,6 @@ def _linearize_fused_loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, 
                 for a in range(2):
                     for c in range(6):
                         J_h[k, a, c] = 0.0
-                        J_t[k, a, c] = 0.0
                     for c in range(3):
                         J_l[k, a, c] = 0.0
                 continue
@@ -207,12 +200,9 @@ def _linearize_fused_loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, 
             for a in range(2):
                 for c in range(6):
                     sh = 0.0
-                    st = 0.0
                     for m in range(3):
                         sh += J_pi[0, a, m] * J_h3[m, c]
-                        st += J_pi[0, a, m] * J_t3[m, c]
                     J_h[k, a, c] = sh
-                    J_t[k, a, c] = st
                 for c in range(3):
                     sl = 0.0
                     for m in range(3):
@@ -226,13 +216,14 @@ def _linearize_fused_loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, 
 @numba.njit(cache=True, nogil=True)
 def linearize_fused(model: int, kp: np.ndarray, poses: np.ndarray, poses_lin: np.ndarray,
                     same_lin: bool, lm_host, lm_s, lm_d, obs_lm, obs_tgt, obs_uv, obs_level,
-                    inv_var: float, huber: float, inf_factor: float, r, w, J_h, J_t, J_l,
+                    inv_var: float, huber: float, inf_factor: float, r, w, J_h, J_l,
                     valid) -> float:
     """Every observation transformed, projected and linearised in one pass.
 
     Writes residuals ``r`` (N,2) at ``poses``, robust information weights ``w`` (N,) (0 for
-    invalid projections), pixel Jacobians w.r.t. the host twist, the target twist and the
-    landmark (N,2,6), (N,2,6), (N,2,3) at ``poses_lin`` (``same_lin``: the two are equal and
+    invalid projections), pixel Jacobians w.r.t. the host twist and the landmark (N,2,6),
+    (N,2,3) at ``poses_lin`` (the target twist's is ``J_h M``, ``M`` of
+    :func:`granite.backend.schur.relative_map`: not written) (``same_lin``: the two are equal and
     one projection per observation serves both), the validity ``valid`` (N,), and returns the
     robust cost ``sum (2 - h) h w0 |r|^2`` (Huber: ``h = min(1, k/|r|)``, so ``w0 |r|^2``
     inside and ``w0 (2 k |r| - k^2)`` outside the threshold ``k``). Invalid projections get
@@ -240,14 +231,14 @@ def linearize_fused(model: int, kp: np.ndarray, poses: np.ndarray, poses_lin: np
     if model == KB4:
         return _linearize_fused(KB4, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d,
                                 obs_lm, obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor,
-                                r, w, J_h, J_t, J_l, valid)
+                                r, w, J_h, J_l, valid)
     if model == DS:
         return _linearize_fused(DS, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d,
                                 obs_lm, obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor,
-                                r, w, J_h, J_t, J_l, valid)
+                                r, w, J_h, J_l, valid)
     return _linearize_fused(PINHOLE, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d,
                             obs_lm, obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor,
-                            r, w, J_h, J_t, J_l, valid)
+                            r, w, J_h, J_l, valid)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -275,7 +266,7 @@ class Workspace:
     memory (the window keeps one workspace for all its problems, so that the pages stay mapped
     across calls)."""
 
-    _FIELDS = (("r", (2,)), ("w", ()), ("J_h", (2, 6)), ("J_t", (2, 6)), ("J_l", (2, 3)))
+    _FIELDS = (("r", (2,)), ("w", ()), ("J_h", (2, 6)), ("J_l", (2, 3)))
 
     def __init__(self, n: int):
         self.capacity = int(n)
@@ -294,16 +285,20 @@ class Workspace:
 
 
 class LinearizedObservations:
-    """Residuals, weights and pixel Jacobians of a packed problem at one estimate."""
+    """Residuals, weights and pixel Jacobians of a packed problem at one estimate: ``r``
+    (N,2), ``w`` (N,), ``J_h`` (N,2,6) w.r.t. the host's twist, ``J_l`` (N,2,3) w.r.t. the
+    landmark, and ``t_lin`` (K,3), the camera centres at the linearisation points: the
+    Jacobian w.r.t. the target's twist is ``J_h M`` (:func:`granite.backend.schur.relative_map`
+    of ``t_lin[h]``, ``t_lin[t]``)."""
 
-    __slots__ = ("r", "w", "J_h", "J_t", "J_l", "cost", "valid")
+    __slots__ = ("r", "w", "J_h", "J_l", "t_lin", "cost", "valid")
 
-    def __init__(self, r, w, J_h, J_t, J_l, cost, valid):
+    def __init__(self, r, w, J_h, J_l, t_lin, cost, valid):
         self.r = r
         self.w = w
         self.J_h = J_h
-        self.J_t = J_t
         self.J_l = J_l
+        self.t_lin = t_lin
         self.cost = float(cost)
         self.valid = valid
 
@@ -320,8 +315,9 @@ def linearize(camera, packed: PackedObservations, poses: np.ndarray, poses_lin: 
     cost = linearize_fused(camera.kernel_model, camera.kernel_params, poses, poses_lin,
                            same_lin, packed.lm_host, packed.lm_s, packed.lm_d, packed.obs_lm,
                            packed.obs_tgt, packed.obs_uv, packed.obs_level, inv_var, huber,
-                           inf_factor, ws.r, ws.w, ws.J_h, ws.J_t, ws.J_l, valid)
-    return LinearizedObservations(ws.r, ws.w, ws.J_h, ws.J_t, ws.J_l, cost, valid)
+                           inf_factor, ws.r, ws.w, ws.J_h, ws.J_l, valid)
+    t_lin = np.ascontiguousarray(poses_lin[:, :3, 3])
+    return LinearizedObservations(ws.r, ws.w, ws.J_h, ws.J_l, t_lin, cost, valid)
 
 
 def reprojection_residuals(camera, packed: PackedObservations, poses: np.ndarray

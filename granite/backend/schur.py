@@ -14,30 +14,6 @@ import numpy as np
 import scipy.linalg
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _add_jtwj(Hb: np.ndarray, i: int, j: int, wJa: np.ndarray, b0, b1) -> None:
-    """``Hb[i, j] += wJa^T Jb`` for 2x6 Jacobians (block layout (K,K,6,6)), the rows of ``Jb``
-    given as 6-tuples ``b0``, ``b1`` (see :func:`_row6`). Inlined into :func:`schur_reduce`
-    (LLVM left it a call: 5 % of that kernel)."""
-    for c1 in range(6):
-        a0 = wJa[0, c1]
-        a1 = wJa[1, c1]
-        for c2 in range(6):
-            Hb[i, j, c1, c2] += a0 * b0[c2] + a1 * b1[c2]
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _add_jtwj_lower(Hb: np.ndarray, i: int, wJa: np.ndarray, b0, b1) -> None:
-    """The entries ``c2 <= c1`` of ``Hb[i, i] += wJa^T Jb`` (rows ``b0``, ``b1``): the only
-    entries of a diagonal block that :func:`schur_reduce` assembles into ``H`` (its mirror
-    loop writes the lower triangle last)."""
-    for c1 in range(6):
-        a0 = wJa[0, c1]
-        a1 = wJa[1, c1]
-        for c2 in range(c1 + 1):
-            Hb[i, i, c1, c2] += a0 * b0[c2] + a1 * b1[c2]
-
-
 #: A landmark column whose part orthogonal to the previous columns (thin QR of the
 #: weighted landmark Jacobian) is at most this fraction of its norm is linearly dependent on
 #: them to float64 round-off (a few hundred ulps): that coordinate is unconstrained and is held
@@ -125,10 +101,114 @@ def _row6(A, i, q):
     return (A[i, q, 0], A[i, q, 1], A[i, q, 2], A[i, q, 3], A[i, q, 4], A[i, q, 5])
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add_block(A: np.ndarray, p: int, q: int, B: np.ndarray) -> None:
+    """Add the 6x6 block ``B`` at absolute block ``(p, q)`` of the upper block storage
+    ``A`` (K,K,6,6), i.e. ``B^T`` at ``(q, p)`` when ``p > q``."""
+    if p <= q:
+        for c1 in range(6):
+            for c2 in range(6):
+                A[p, q, c1, c2] += B[c1, c2]
+    else:
+        for c1 in range(6):
+            for c2 in range(6):
+                A[q, p, c2, c1] += B[c1, c2]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _times_m(S: np.ndarray, d0: float, d1: float, d2: float, out: np.ndarray) -> None:
+    """``out = S M`` for a 6x6 ``S`` and the relative map ``M = [[-I, [d]x], [0, -I]]``
+    (:func:`relative_map`): row ``u = S[r, :3]`` gives ``[-u, u x d - S[r, 3:]]``."""
+    for r in range(6):
+        u0 = S[r, 0]
+        u1 = S[r, 1]
+        u2 = S[r, 2]
+        out[r, 0] = -u0
+        out[r, 1] = -u1
+        out[r, 2] = -u2
+        out[r, 3] = u1 * d2 - u2 * d1 - S[r, 3]
+        out[r, 4] = u2 * d0 - u0 * d2 - S[r, 4]
+        out[r, 5] = u0 * d1 - u1 * d0 - S[r, 5]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _mt_times(Y: np.ndarray, d0: float, d1: float, d2: float, out: np.ndarray) -> None:
+    """``out = M^T Y`` (see :func:`_times_m`): column ``y = Y[:3, c]`` gives
+    ``[-y, y x d - Y[3:, c]]``."""
+    for c in range(6):
+        y0 = Y[0, c]
+        y1 = Y[1, c]
+        y2 = Y[2, c]
+        out[0, c] = -y0
+        out[1, c] = -y1
+        out[2, c] = -y2
+        out[3, c] = y1 * d2 - y2 * d1 - Y[3, c]
+        out[4, c] = y2 * d0 - y0 * d2 - Y[4, c]
+        out[5, c] = y0 * d1 - y1 * d0 - Y[5, c]
+
+
+def relative_map(t_w_h: np.ndarray, t_w_t: np.ndarray) -> np.ndarray:
+    """The 6x6 ``M`` with ``J_t = J_h M`` for an observation hosted by frame ``h`` and seen in
+    frame ``t`` (camera centres ``t_w_h``, ``t_w_t`` at the linearisation point): with
+    ``d = t_w_h - t_w_t``, ``M = [[-I, [d]x], [0, -I]]`` on the twist ``[v, w]``
+    (docs/backend.md, "Relative-pose elimination"). The pixel residual then depends on the two
+    poses through ``delta = dx_h + M dx_t`` only."""
+    d = np.asarray(t_w_h, dtype=float) - np.asarray(t_w_t, dtype=float)
+    M = -np.eye(6)
+    M[:3, 3:] = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
+    return M
+
+
+@numba.njit(cache=True, nogil=True)
+def _expand_host(h: int, targets: np.ndarray, nt: int, R: np.ndarray, diagonal_only: bool,
+                 t_lin: np.ndarray, A: np.ndarray, col: np.ndarray, tmp: np.ndarray,
+                 tmp2: np.ndarray) -> None:
+    """Add ``P^T R P`` to the absolute upper block storage ``A`` (K,K,6,6): ``R`` (K,K,6,6)
+    is a symmetric block matrix over the relative increments ``delta_t = dx_h + M_t dx_t``
+    of host ``h`` and its targets ``targets[:nt]`` (blocks ``R[t1, t2]`` with ``t1 <= t2``
+    stored, full 6x6), ``diagonal_only``: only its diagonal blocks are non-zero. Blocks:
+    ``(h, h) += sum R[t1, t2]``, ``(h, t2) += (sum_t1 R[t1, t2]) M_t2``,
+    ``(t1, t2) += M_t1^T R[t1, t2] M_t2``."""
+    hh = np.zeros((6, 6))
+    for b in range(nt):
+        t2 = targets[b]
+        col[:, :] = 0.0
+        if diagonal_only:
+            col[:, :] = R[t2, t2]
+        else:
+            for a in range(nt):
+                t1 = targets[a]
+                if t1 <= t2:
+                    for c1 in range(6):
+                        for c2 in range(6):
+                            col[c1, c2] += R[t1, t2, c1, c2]
+                else:
+                    for c1 in range(6):
+                        for c2 in range(6):
+                            col[c1, c2] += R[t2, t1, c2, c1]
+        for c1 in range(6):
+            for c2 in range(6):
+                hh[c1, c2] += col[c1, c2]
+        d0 = t_lin[h, 0] - t_lin[t2, 0]
+        d1 = t_lin[h, 1] - t_lin[t2, 1]
+        d2 = t_lin[h, 2] - t_lin[t2, 2]
+        _times_m(col, d0, d1, d2, tmp)
+        _add_block(A, h, t2, tmp)
+        for a in range(nt):
+            t1 = targets[a]
+            if t1 > t2 or (diagonal_only and t1 != t2):
+                continue
+            _times_m(R[t1, t2], d0, d1, d2, tmp)
+            _mt_times(tmp, t_lin[h, 0] - t_lin[t1, 0], t_lin[h, 1] - t_lin[t1, 1],
+                      t_lin[h, 2] - t_lin[t1, 2], tmp2)
+            _add_block(A, t1, t2, tmp2)
+    _add_block(A, h, h, hh)
+
+
 @numba.njit(cache=True, nogil=True)
 def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tgt: np.ndarray,
-                 r: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_t: np.ndarray,
-                 J_l: np.ndarray, damping: float, lm_lambda: float, with_rhs: bool = True):
+                 r: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_l: np.ndarray,
+                 t_lin: np.ndarray, damping: float, lm_lambda: float, with_rhs: bool = True):
     """Accumulate the normal equations of all observations and eliminate the landmarks.
 
     Returns ``(H_raw, b_raw, H_red, b_red, Hll_inv, b_l)``: the pose-pose block and pose
@@ -136,7 +216,14 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
     inverses of the (damped) landmark blocks (M,3,3) and the landmark gradients (M,3).
     ``damping + lm_lambda * diag`` is added to each landmark block before inversion.
     ``with_rhs=False``: only the matrices (``H_raw``, ``H_red``) are computed; the gradients
-    and ``Hll_inv`` are returned as zeros (what Λ_scaledrift needs, 13 % less work).
+    and ``Hll_inv`` are returned as zeros (what Λ_scaledrift needs).
+
+    Relative-pose form: an observation's Jacobian w.r.t. its host's and target's twists is
+    ``[J_h, J_h M_ht]`` (:func:`relative_map`, ``t_lin`` (K,3) the camera centres at the
+    linearisation points), so it sees the poses through ``delta_ht = dx_h + M_ht dx_t`` only.
+    The landmarks of one host are eliminated over those relative increments of their targets
+    (one 6-column block per target instead of two), and each host's relative system is mapped
+    to the absolute poses once (:func:`_expand_host`): half the per-observation products.
 
     Elimination by orthogonal projection, not by inverting the 3x3 normal block: per landmark
     the weighted Jacobian rows ``[A_p | A_l]`` (``sqrt(w)`` times the 2x6 / 2x3 blocks, plus
@@ -148,14 +235,33 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
     ``eps |H|``); the 3x3 inverse of ``A_l^T A_l`` instead squares the condition number and
     made the reduced system indefinite on near-singular landmark blocks (a landmark with a
     single observation outside its host: rank 2 plus the damping; docs/backend.md).
-    Accumulation uses 6x6 block storage and only blocks ``(i, j)`` with ``i <= j``.
+    The output is exactly symmetric (upper block storage, mirrored).
     """
-    n6 = 6 * num_poses
-    Hb = np.zeros((num_poses, num_poses, 6, 6))
-    Sb = np.zeros((num_poses, num_poses, 6, 6))
+    K = num_poses
+    n6 = 6 * K
+    m = lm_ptr.shape[0] - 1
+    # landmarks grouped by host (stable counting sort)
+    count = np.zeros(K + 1, dtype=np.int64)
+    for i in range(m):
+        count[lm_host[i] + 1] += 1
+    for p in range(K):
+        count[p + 1] += count[p]
+    order = np.empty(m, dtype=np.int64)
+    fill = count[:K].copy()
+    for i in range(m):
+        order[fill[lm_host[i]]] = i
+        fill[lm_host[i]] += 1
+    # absolute accumulators (upper block storage) and one host's relative system
+    Ha = np.zeros((K, K, 6, 6))
+    Sa = np.zeros((K, K, 6, 6))
     b = np.zeros(n6)
     sb = np.zeros(n6)
-    m = lm_ptr.shape[0] - 1
+    Hr = np.zeros((K, K, 6, 6))
+    Sr = np.zeros((K, K, 6, 6))
+    br = np.zeros((K, 6))
+    sbr = np.zeros((K, 6))
+    host_targets = np.empty(K, dtype=np.int64)
+    in_host = np.zeros(K, dtype=np.bool_)
     Hll_inv = np.zeros((m, 3, 3))
     b_l = np.zeros((m, 3))
     max_obs = 0
@@ -165,174 +271,183 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
     Al = np.zeros((nr_max, 3))
     Q = np.zeros((nr_max, 3))
     row_obs = np.empty(max_obs, dtype=np.int64)
-    slot = -np.ones(num_poses, dtype=np.int64)
-    slot_pose = np.empty(num_poses, dtype=np.int64)
-    G = np.zeros((num_poses, 3, 6))
+    slot = -np.ones(K, dtype=np.int64)
+    slot_pose = np.empty(K, dtype=np.int64)
+    G = np.zeros((K, 3, 6))
     diag = np.zeros(3)
     bli = np.zeros(3)
     qr_ = np.zeros(3)
-    wJh = np.zeros((2, 6))
-    wJt = np.zeros((2, 6))
     inv = np.zeros((3, 3))
     qr_R = np.zeros((3, 3))
     qr_Rinv = np.zeros((3, 3))
     qr_cols = np.zeros(3, dtype=np.int64)
     sqw = np.empty(max_obs)
-    for i in range(m):
-        h = lm_host[i]
-        ns = 0
-        no = 0
-        diag[:] = 0.0
-        bli[:] = 0.0
-        for k in range(lm_ptr[i], lm_ptr[i + 1]):
-            wk = w[k]
-            if wk == 0.0:
-                continue
-            sk = np.sqrt(wk)
-            for a in range(2):
-                for c in range(3):
-                    Al[2 * no + a, c] = sk * J_l[k, a, c]
-            row_obs[no] = k
-            sqw[no] = sk
-            no += 1
-            for c1 in range(3):
-                if with_rhs:
-                    bli[c1] += wk * (J_l[k, 0, c1] * r[k, 0] + J_l[k, 1, c1] * r[k, 1])
-                diag[c1] += wk * (J_l[k, 0, c1] * J_l[k, 0, c1] + J_l[k, 1, c1] * J_l[k, 1, c1])
-            t = obs_tgt[k]
-            if t == h:
-                continue
-            if slot[h] < 0:
-                slot[h] = ns
-                slot_pose[ns] = h
-                ns += 1
-            if slot[t] < 0:
-                slot[t] = ns
-                slot_pose[ns] = t
-                ns += 1
-            h0 = _row6(J_h, k, 0)
-            h1 = _row6(J_h, k, 1)
-            t0 = _row6(J_t, k, 0)
-            t1 = _row6(J_t, k, 1)
-            for c in range(6):
-                wJh[0, c] = wk * h0[c]
-                wJh[1, c] = wk * h1[c]
-                wJt[0, c] = wk * t0[c]
-                wJt[1, c] = wk * t1[c]
-            oh = 6 * h
-            ot = 6 * t
-            if with_rhs:
-                for c1 in range(6):
-                    b[oh + c1] += wJh[0, c1] * r[k, 0] + wJh[1, c1] * r[k, 1]
-                    b[ot + c1] += wJt[0, c1] * r[k, 0] + wJt[1, c1] * r[k, 1]
-            _add_jtwj_lower(Hb, h, wJh, h0, h1)
-            _add_jtwj_lower(Hb, t, wJt, t0, t1)
-            if h < t:
-                _add_jtwj(Hb, h, t, wJh, t0, t1)
-            else:
-                _add_jtwj(Hb, t, h, wJt, h0, h1)
-        b_l[i, :] = bli
-        nr = 2 * no + 3
-        for c in range(3):
-            for c2 in range(3):
-                Al[2 * no + c, c2] = 0.0
-            Al[2 * no + c, c] = np.sqrt(damping + lm_lambda * diag[c])
-        rank = _landmark_qr(Al, nr, Q, inv, qr_R, qr_Rinv, qr_cols, with_rhs)
-        Hll_inv[i, :, :] = inv
-        if ns == 0 or rank == 0:
-            for a in range(ns):
-                slot[slot_pose[a]] = -1
-            continue
-        # G_slot = Q^T A_p[:, slot] and Q^T r over the observation rows (damping rows: A_p = 0;
-        # the columns of Q beyond the rank are zero)
-        for a in range(ns):
-            for q in range(3):
-                for c in range(6):
-                    G[a, q, c] = 0.0
-        qr_[:] = 0.0
-        sh = slot[h]
-        for o in range(no):
-            k = row_obs[o]
-            sk = sqw[o]
-            t = obs_tgt[k]
-            st = slot[t]
-            h0 = _row6(J_h, k, 0)
-            h1 = _row6(J_h, k, 1)
-            t0 = _row6(J_t, k, 0)
-            t1 = _row6(J_t, k, 1)
-            for q in range(3):
-                q0 = Q[2 * o, q] * sk
-                q1 = Q[2 * o + 1, q] * sk
-                if with_rhs:
-                    qr_[q] += q0 * r[k, 0] + q1 * r[k, 1]
+    col = np.zeros((6, 6))
+    tmp = np.zeros((6, 6))
+    tmp2 = np.zeros((6, 6))
+    for h in range(K):
+        nh = 0  # targets of this host's landmarks
+        for oi in range(count[h], count[h + 1]):
+            i = order[oi]
+            ns = 0
+            no = 0
+            diag[:] = 0.0
+            bli[:] = 0.0
+            for k in range(lm_ptr[i], lm_ptr[i + 1]):
+                wk = w[k]
+                if wk == 0.0:
+                    continue
+                sk = np.sqrt(wk)
+                for a in range(2):
+                    for c in range(3):
+                        Al[2 * no + a, c] = sk * J_l[k, a, c]
+                row_obs[no] = k
+                sqw[no] = sk
+                no += 1
+                for c1 in range(3):
+                    if with_rhs:
+                        bli[c1] += wk * (J_l[k, 0, c1] * r[k, 0] + J_l[k, 1, c1] * r[k, 1])
+                    diag[c1] += wk * (J_l[k, 0, c1] * J_l[k, 0, c1] + J_l[k, 1, c1] * J_l[k, 1, c1])
+                t = obs_tgt[k]
                 if t == h:
                     continue
-                for c in range(6):
-                    G[sh, q, c] += q0 * h0[c] + q1 * h1[c]
-                    G[st, q, c] += q0 * t0[c] + q1 * t1[c]
-        for a in range(ns if with_rhs else 0):
-            oa = 6 * slot_pose[a]
-            for c1 in range(6):
-                sb[oa + c1] += G[a, 0, c1] * qr_[0] + G[a, 1, c1] * qr_[1] + G[a, 2, c1] * qr_[2]
-        for a in range(ns):
-            pa = slot_pose[a]
-            for c in range(ns):
-                pc = slot_pose[c]
-                if pa > pc:
-                    continue
-                g0 = _row6(G, c, 0)
-                g1 = _row6(G, c, 1)
-                g2 = _row6(G, c, 2)
-                if pa == pc:
-                    # G_a^T G_a: entries (c1, c2) and (c2, c1) are the same products summed in
-                    # the same order, so bit for bit equal: only c2 >= c1 is accumulated (the
-                    # assembly below reads the other half from there)
+                if slot[t] < 0:
+                    slot[t] = ns
+                    slot_pose[ns] = t
+                    ns += 1
+                if not in_host[t]:
+                    in_host[t] = True
+                    host_targets[nh] = t
+                    nh += 1
+                j0 = _row6(J_h, k, 0)
+                j1 = _row6(J_h, k, 1)
+                if with_rhs:
+                    r0 = wk * r[k, 0]
+                    r1 = wk * r[k, 1]
+                    for c1 in range(6):
+                        br[t, c1] += j0[c1] * r0 + j1[c1] * r1
+                for c1 in range(6):
+                    a0 = wk * j0[c1]
+                    a1 = wk * j1[c1]
+                    for c2 in range(6):
+                        Hr[t, t, c1, c2] += a0 * j0[c2] + a1 * j1[c2]
+            b_l[i, :] = bli
+            nr = 2 * no + 3
+            for c in range(3):
+                for c2 in range(3):
+                    Al[2 * no + c, c2] = 0.0
+                Al[2 * no + c, c] = np.sqrt(damping + lm_lambda * diag[c])
+            rank = _landmark_qr(Al, nr, Q, inv, qr_R, qr_Rinv, qr_cols, with_rhs)
+            Hll_inv[i, :, :] = inv
+            if ns == 0 or rank == 0:
+                for a in range(ns):
+                    slot[slot_pose[a]] = -1
+                continue
+            # G_slot = Q^T A_p[:, slot] and Q^T r over the observation rows (damping rows:
+            # A_p = 0; the columns of Q beyond the rank are zero)
+            for a in range(ns):
+                for q in range(3):
+                    for c in range(6):
+                        G[a, q, c] = 0.0
+            qr_[:] = 0.0
+            for o in range(no):
+                k = row_obs[o]
+                sk = sqw[o]
+                t = obs_tgt[k]
+                j0 = _row6(J_h, k, 0)
+                j1 = _row6(J_h, k, 1)
+                for q in range(3):
+                    q0 = Q[2 * o, q] * sk
+                    q1 = Q[2 * o + 1, q] * sk
+                    if with_rhs:
+                        qr_[q] += q0 * r[k, 0] + q1 * r[k, 1]
+                    if t == h:
+                        continue
+                    st = slot[t]
+                    for c in range(6):
+                        G[st, q, c] += q0 * j0[c] + q1 * j1[c]
+            for a in range(ns if with_rhs else 0):
+                ta = slot_pose[a]
+                for c1 in range(6):
+                    sbr[ta, c1] += G[a, 0, c1] * qr_[0] + G[a, 1, c1] * qr_[1] + G[a, 2, c1] * qr_[2]
+            for a in range(ns):
+                pa = slot_pose[a]
+                for c in range(ns):
+                    pc = slot_pose[c]
+                    if pa > pc:
+                        continue
+                    g0 = _row6(G, c, 0)
+                    g1 = _row6(G, c, 1)
+                    g2 = _row6(G, c, 2)
                     for c1 in range(6):
                         x0 = G[a, 0, c1]
                         x1 = G[a, 1, c1]
                         x2 = G[a, 2, c1]
-                        for c2 in range(c1, 6):
-                            Sb[pa, pa, c1, c2] += x0 * g0[c2] + x1 * g1[c2] + x2 * g2[c2]
-                    continue
-                for c1 in range(6):
-                    x0 = G[a, 0, c1]
-                    x1 = G[a, 1, c1]
-                    x2 = G[a, 2, c1]
-                    for c2 in range(6):
-                        Sb[pa, pc, c1, c2] += x0 * g0[c2] + x1 * g1[c2] + x2 * g2[c2]
-        for a in range(ns):
-            slot[slot_pose[a]] = -1
+                        for c2 in range(6):
+                            Sr[pa, pc, c1, c2] += x0 * g0[c2] + x1 * g1[c2] + x2 * g2[c2]
+            for a in range(ns):
+                slot[slot_pose[a]] = -1
+        if nh == 0:
+            continue
+        # this host's relative systems to absolute poses
+        _expand_host(h, host_targets, nh, Hr, True, t_lin, Ha, col, tmp, tmp2)
+        _expand_host(h, host_targets, nh, Sr, False, t_lin, Sa, col, tmp, tmp2)
+        for a in range(nh):
+            t = host_targets[a]
+            d0 = t_lin[h, 0] - t_lin[t, 0]
+            d1 = t_lin[h, 1] - t_lin[t, 1]
+            d2 = t_lin[h, 2] - t_lin[t, 2]
+            if with_rhs:
+                # b[h] += g, b[t] += M^T g with M^T g = [-g_v, g_v x d - g_w]
+                for src, dst in ((br, b), (sbr, sb)):
+                    g0 = src[t, 0]
+                    g1 = src[t, 1]
+                    g2 = src[t, 2]
+                    for c in range(6):
+                        dst[6 * h + c] += src[t, c]
+                    dst[6 * t + 0] -= g0
+                    dst[6 * t + 1] -= g1
+                    dst[6 * t + 2] -= g2
+                    dst[6 * t + 3] += g1 * d2 - g2 * d1 - src[t, 3]
+                    dst[6 * t + 4] += g2 * d0 - g0 * d2 - src[t, 4]
+                    dst[6 * t + 5] += g0 * d1 - g1 * d0 - src[t, 5]
+                    for c in range(6):
+                        src[t, c] = 0.0
+            for a2 in range(nh):
+                t2 = host_targets[a2]
+                Hr[t, t2, :, :] = 0.0
+                Sr[t, t2, :, :] = 0.0
+        for a in range(nh):
+            in_host[host_targets[a]] = False
     H = np.empty((n6, n6))
-    Hr = np.empty((n6, n6))
-    for p1 in range(num_poses):
-        for p2 in range(p1, num_poses):
+    Hred = np.empty((n6, n6))
+    for p1 in range(K):
+        for p2 in range(p1, K):
             for c1 in range(6):
                 for c2 in range(6):
-                    # diagonal blocks: (c1, c2) and (c2, c1) write the same two entries and
-                    # the later one, c1 > c2, stays: only that triangle of Hb is accumulated,
-                    # and the landmark terms are kept on the other one (equal bit for bit)
-                    if p1 == p2 and c1 < c2:
-                        continue
-                    x = Hb[p1, p2, c1, c2]
+                    # diagonal blocks: the upper triangle (c1 <= c2) is mirrored
                     if p1 == p2 and c1 > c2:
-                        y = x - Sb[p1, p1, c2, c1]
-                    else:
-                        y = x - Sb[p1, p2, c1, c2]
+                        continue
+                    x = Ha[p1, p2, c1, c2]
+                    y = x - Sa[p1, p2, c1, c2]
                     H[6 * p1 + c1, 6 * p2 + c2] = x
                     H[6 * p2 + c2, 6 * p1 + c1] = x
-                    Hr[6 * p1 + c1, 6 * p2 + c2] = y
-                    Hr[6 * p2 + c2, 6 * p1 + c1] = y
-    return H, b, Hr, b - sb, Hll_inv, b_l
+                    Hred[6 * p1 + c1, 6 * p2 + c2] = y
+                    Hred[6 * p2 + c2, 6 * p1 + c1] = y
+    return H, b, Hred, b - sb, Hll_inv, b_l
 
 
 @numba.njit(cache=True, nogil=True)
 def back_substitute(dx: np.ndarray, lm_ptr: np.ndarray, lm_host: np.ndarray,
-                    obs_tgt: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_t: np.ndarray,
-                    J_l: np.ndarray, Hll_inv: np.ndarray, b_l: np.ndarray) -> np.ndarray:
-    """Landmark increments ``dl_i = -Hll_i^-1 (b_l_i + H_lp dx)`` (M,3) for pose step ``dx``."""
+                    obs_tgt: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_l: np.ndarray,
+                    t_lin: np.ndarray, Hll_inv: np.ndarray, b_l: np.ndarray) -> np.ndarray:
+    """Landmark increments ``dl_i = -Hll_i^-1 (b_l_i + H_lp dx)`` (M,3) for pose step ``dx``
+    (the pose Jacobian of an observation is ``J_h`` times ``delta = dx_h + M_ht dx_t``,
+    :func:`relative_map`)."""
     m = lm_ptr.shape[0] - 1
     dl = np.zeros((m, 3))
     acc = np.zeros(3)
+    delta = np.zeros(6)
     for i in range(m):
         h = lm_host[i]
         acc[:] = b_l[i, :]
@@ -341,10 +456,26 @@ def back_substitute(dx: np.ndarray, lm_ptr: np.ndarray, lm_host: np.ndarray,
             wk = w[k]
             if wk == 0.0 or t == h:
                 continue
+            d0 = t_lin[h, 0] - t_lin[t, 0]
+            d1 = t_lin[h, 1] - t_lin[t, 1]
+            d2 = t_lin[h, 2] - t_lin[t, 2]
+            # M dx_t = [-v + [d]x w, -w]
+            v0 = dx[6 * t]
+            v1 = dx[6 * t + 1]
+            v2 = dx[6 * t + 2]
+            w0 = dx[6 * t + 3]
+            w1 = dx[6 * t + 4]
+            w2 = dx[6 * t + 5]
+            delta[0] = dx[6 * h] - v0 + d1 * w2 - d2 * w1
+            delta[1] = dx[6 * h + 1] - v1 + d2 * w0 - d0 * w2
+            delta[2] = dx[6 * h + 2] - v2 + d0 * w1 - d1 * w0
+            delta[3] = dx[6 * h + 3] - w0
+            delta[4] = dx[6 * h + 4] - w1
+            delta[5] = dx[6 * h + 5] - w2
             for a in range(2):
                 jx = 0.0
                 for c in range(6):
-                    jx += J_h[k, a, c] * dx[6 * h + c] + J_t[k, a, c] * dx[6 * t + c]
+                    jx += J_h[k, a, c] * delta[c]
                 for c in range(3):
                     acc[c] += wk * J_l[k, a, c] * jx
         for c in range(3):

@@ -116,7 +116,7 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
             t3 = time.perf_counter()
             dx = solve_normal_equations(system.H, system.b)
             dl = back_substitute(dx, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.w, lin.J_h,
-                                 lin.J_t, lin.J_l, red.Hll_inv, red.b_l)
+                                 lin.J_l, lin.t_lin, red.Hll_inv, red.b_l)
             t4 = time.perf_counter()
             undo = problem.apply_step(dx, dl, cfg.max_inv_dist)
             t5 = time.perf_counter()
@@ -179,7 +179,7 @@ def _lm_step(problem: WindowProblem, cost: WindowCost, cfg: BackendConfig,
         b = red.b + system.b - system.b_reprojection
         dx = solve_normal_equations(H, b)
         dl = back_substitute(dx, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.w, lin.J_h,
-                             lin.J_t, lin.J_l, red.Hll_inv, red.b_l)
+                             lin.J_l, lin.t_lin, red.Hll_inv, red.b_l)
         old = problem.apply_step(dx, dl, cfg.max_inv_dist)
         new_cost = cost.cost(problem, pairs)
         timings["solve"] += time.perf_counter() - t3
