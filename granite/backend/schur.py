@@ -332,6 +332,8 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
                     for c2 in range(6):
                         Hr[t, t, c1, c2] += a0 * j0[c2] + a1 * j1[c2]
             b_l[i, :] = bli
+            if ns == 0 and not with_rhs:
+                continue  # no pose term, and no landmark inverse wanted (Λ's systems)
             nr = 2 * no + 3
             for c in range(3):
                 for c2 in range(3):
