@@ -15,7 +15,9 @@ dataset the median and quartiles of the ATE (Sim(3), m) and RMS RPE (Eq. 18-20, 
 number of runs with ATE above ``--fail-ate`` metres and of runs with restarts, and writes
 DIR/spread.json (every run's figures) and DIR/<dataset>/<s>/ (the run folders; an existing run
 folder with evaluation.json is reused, so an interrupted study resumes). Compare two code
-versions by running the script in each checkout on the same datasets.
+versions by running the script from each checkout's folder on the same datasets, into
+different --out folders: the runs are ``python -m granite.cli.main run`` processes, which
+import the ``granite`` of the current folder first.
 
 Bad input (missing dataset, unreadable configuration, --runs < 1) is one error line and exit
 status 2.

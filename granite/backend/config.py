@@ -73,6 +73,11 @@ class BackendConfig:
         marg_depth_change: not in the reference (0: off): a full window first marginalises
             the keyframe whose median landmark depth differs most from the newest frame's, if
             by more than the factor ``1 + marg_depth_change``.
+        reanchor_lost_scale: not in the reference (off): when a marginalisation leaves a
+            prior without information on the window's global scale (the keyframes that
+            carried it left across a keyframe link with no scale, docs/estimator.md) and no
+            scale fix is set, the scale (unobservable then) is fixed again at its current
+            value by a scale fix (Eq. 9) between the two oldest keyframes.
     """
 
     obs_std_dev: float = spec_field(0.5, 0.0, 1e4, lo_open=True)
@@ -101,6 +106,7 @@ class BackendConfig:
     marg_distance_epsilon: float = spec_field(1e-5, 0.0, 1e6, lo_open=True)
     marg_max_keyframe_age: float = spec_field(0.0, 0.0, 1e6, origin="ours", reference=0.0)
     marg_depth_change: float = spec_field(0.0, 0.0, 100.0, origin="ours", reference=0.0)
+    reanchor_lost_scale: bool = spec_field(False, origin="ours", reference=False)
 
     def __post_init__(self) -> None:
         validate_instance(self, "backend")

@@ -67,8 +67,50 @@ def marginalize_frames(window: SlidingWindow, frame_ids: Iterable[int]) -> Margi
         window.clear_scale_fix()
         if not _prior_links(window.prior, sf_frames - set(marg)):
             _reanchor_scale_fix(window, sf.weight)
+    elif (marg and window.scale_fix is None and window.config.reanchor_lost_scale
+          and prior_scale_information(window.prior) <= UNANCHORED_SCALE_REL):
+        _reanchor_scale_fix(window, window.config.scale_fix_weight)
     return MarginalizationReport(tuple(remove), tuple(marg), tuple(sorted(removed_lms)),
                                  sf_moved)
+
+
+#: A prior whose information on the global scaling of its frames is at most this fraction of
+#: its largest diagonal entry (per unit squared length of the scaling) holds no scale: the
+#: scale it held left with a keyframe link that carried none. Measured by Λ on a fast flight
+#: (docs/estimator.md): 3e-5 of λ_max while the prior held the scale, 2e-14 after.
+UNANCHORED_SCALE_REL = 1e-9
+
+
+def prior_scale_information(prior: MargPrior) -> float:
+    """The prior's information along the global scaling of its frames' positions about their
+    centre, with the rigid motions of the whole set projected out (their gauge information is
+    large), per unit squared length of the scaling, relative to the prior's largest diagonal
+    entry. 0 for fewer than two frames or an empty prior. Decoupled increments at the prior's
+    linearisation points: a scaling moves ``v_i`` by ``t_i - c``; a rigid motion ``(a, r)``
+    by ``v_i = a - [t_i]x r``, ``w_i = r``."""
+    n = len(prior.frame_ids)
+    H = prior.H
+    if n < 2 or not np.any(H):
+        return 0.0
+    t = np.array([prior.lin_poses[f][:3, 3] for f in prior.frame_ids])
+    u = np.zeros((n, 6))
+    u[:, :3] = t - t.mean(axis=0)
+    u = u.ravel()
+    norm_sq = float(u @ u)
+    if not norm_sq > 0.0:
+        return 0.0
+    G = np.zeros((n, 6, 6))
+    G[:, :3, :3] = np.eye(3)
+    G[:, 3:, 3:] = np.eye(3)
+    G[:, 0, 4], G[:, 0, 5] = t[:, 2], -t[:, 1]   # -[t]x
+    G[:, 1, 3], G[:, 1, 5] = -t[:, 2], t[:, 0]
+    G[:, 2, 3], G[:, 2, 4] = t[:, 1], -t[:, 0]
+    G = G.reshape(6 * n, 6)
+    HG = H @ G
+    a = np.linalg.lstsq(G.T @ HG, -(HG.T @ u), rcond=1e-14)[0]
+    x = u + G @ a
+    info = float(x @ H @ x)
+    return max(info, 0.0) / norm_sq / float(np.max(np.diag(H)))
 
 
 def _prior_links(prior: MargPrior, kept_scale_frames: set[int]) -> bool:
