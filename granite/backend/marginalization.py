@@ -22,6 +22,7 @@ import numpy as np
 from granite.backend.hessian import marginalize_dense
 from granite.backend.priors import MargPrior
 from granite.backend.problem import pose_rows
+from granite.geometry import hat
 
 if TYPE_CHECKING:
     from granite.backend.window import SlidingWindow
@@ -102,9 +103,8 @@ def prior_scale_information(prior: MargPrior) -> float:
     G = np.zeros((n, 6, 6))
     G[:, :3, :3] = np.eye(3)
     G[:, 3:, 3:] = np.eye(3)
-    G[:, 0, 4], G[:, 0, 5] = t[:, 2], -t[:, 1]   # -[t]x
-    G[:, 1, 3], G[:, 1, 5] = -t[:, 2], t[:, 0]
-    G[:, 2, 3], G[:, 2, 4] = t[:, 1], -t[:, 0]
+    for k in range(n):
+        G[k, :3, 3:] = -hat(t[k])
     G = G.reshape(6 * n, 6)
     HG = H @ G
     a = np.linalg.lstsq(G.T @ HG, -(HG.T @ u), rcond=1e-14)[0]

@@ -13,6 +13,8 @@ import numba
 import numpy as np
 import scipy.linalg
 
+from granite.geometry import hat
+
 
 #: A landmark column whose part orthogonal to the previous columns (thin QR of the
 #: weighted landmark Jacobian) is at most this fraction of its norm is linearly dependent on
@@ -153,9 +155,8 @@ def relative_map(t_w_h: np.ndarray, t_w_t: np.ndarray) -> np.ndarray:
     ``d = t_w_h - t_w_t``, ``M = [[-I, [d]x], [0, -I]]`` on the twist ``[v, w]``
     (docs/backend.md, "Relative-pose elimination"). The pixel residual then depends on the two
     poses through ``delta = dx_h + M dx_t`` only."""
-    d = np.asarray(t_w_h, dtype=float) - np.asarray(t_w_t, dtype=float)
     M = -np.eye(6)
-    M[:3, 3:] = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
+    M[:3, 3:] = hat(np.asarray(t_w_h, dtype=float) - np.asarray(t_w_t, dtype=float))
     return M
 
 
