@@ -46,6 +46,7 @@ def test_reference_file_is_the_defaults_with_our_additions_off():
                        ("optical_flow", "global_retry_min_lost"),
                        ("estimator", "constant_velocity"), ("estimator", "motion_guided_tracking"),
                        ("estimator", "predict_before_estimate"), ("estimator", "tracked_rotation_guess"),
+                       ("estimator", "prediction_depth_neighbours"),
                        ("estimator", "outlier_reoptimize_iterations"),
                        ("estimator", "reinit_keeps_scale"), ("estimator", "init_max_candidates"),
                        ("estimator", "init_candidate_min_parallax"),

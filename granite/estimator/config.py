@@ -124,7 +124,12 @@ class EstimatorConfig:
         refind_min_zncc: minimum ZNCC of a re-found patch with its host patch.
         motion_guided_tracking: not in the reference: the frontend first tracks each point
             from where the constant-velocity pose predicts it (landmarks with d > 0 by their
-            depth, the others by the infinite homography), then as the reference does.
+            depth, tracks without a landmark by their neighbours' (``prediction_depth_neighbours``),
+            the others by the infinite homography), then as the reference does.
+        prediction_depth_neighbours: not in the reference (which has no prediction; 0: the
+            infinite homography). With ``motion_guided_tracking``, a track without a landmark
+            is predicted with the median depth of this many nearest tracks (pixel distance)
+            whose landmarks have one (:func:`granite.estimator.motion_model.neighbour_depths`).
         predict_before_estimate: not in the reference (which has no prediction). With
             ``motion_guided_tracking``, frame k+1's predictions are made before frame k is
             estimated, so the concurrent pipeline tracks frame k+1 during the whole estimator
@@ -170,6 +175,7 @@ class EstimatorConfig:
     max_velocity_extrapolation: float = spec_field(5.0, 0.0, 1000.0, lo_open=True, origin="ours")
     motion_guided_tracking: bool = spec_field(True, origin="ours", reference=False)
     predict_before_estimate: bool = spec_field(True, origin="ours", reference=False)
+    prediction_depth_neighbours: int = spec_field(8, 0, 1000, origin="ours", reference=0)
     tracked_rotation_guess: bool = spec_field(True, origin="ours", reference=False)
     outlier_reoptimize_iterations: int = spec_field(2, 0, 1000, origin="ours", reference=0)
     outlier_reoptimize_min_fraction: float = spec_field(0.005, 0.0, 1.0, origin="ours")

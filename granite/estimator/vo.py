@@ -346,7 +346,7 @@ class MonocularVO:
         model = model.copy()
         model.update(T_w_c, timestamp, measure_motion=True)
         self._prediction_basis = prediction_basis(model, self.window, timestamp, tracks.ids,
-                                                  tracks.positions)
+                                                  tracks.positions, est.prediction_depth_neighbours)
 
     def process(self, frame_id: int, timestamp: float, image: np.ndarray | None) -> FrameOutput:
         """Process one frame; ``image`` None marks a missing or corrupt image (skipped)."""
@@ -419,7 +419,7 @@ class MonocularVO:
         # its tracking may start (``prediction_ready``) while the rest runs
         if est.motion_guided_tracking and not est.predict_before_estimate:
             self._prediction_basis = prediction_basis(self.motion, win, timestamp, tracks.ids,
-                                                      tracks.positions)
+                                                      tracks.positions, est.prediction_depth_neighbours)
         if prediction_ready is not None:
             prediction_ready()
         if not lost:
