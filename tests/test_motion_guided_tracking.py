@@ -300,3 +300,27 @@ def test_neighbour_depths_need_three_known_depths():
     three = np.array([5.0, 6.0, 7.0, np.nan])
     np.testing.assert_array_equal(neighbour_depths(uv, three, 8), [5.0, 6.0, 7.0, 6.0])
     np.testing.assert_array_equal(neighbour_depths(uv, three, 1), [5.0, 6.0, 7.0, 7.0])
+
+
+def test_neighbour_depths_are_the_median_of_the_exact_nearest_neighbours():
+    """The grid search against brute force (all pairwise distances, numpy), on random point
+    sets in and around a 640x480 image, k from 1 to more than the known points."""
+    from granite.estimator.motion_model import neighbour_depths
+
+    rng = np.random.default_rng(5)
+    for trial in range(40):
+        n = int(rng.integers(4, 600))
+        uv = rng.uniform(-30, 680, (n, 2))
+        depths = rng.uniform(2.0, 50.0, n)
+        depths[rng.random(n) < 0.6] = np.nan
+        known = np.flatnonzero(np.isfinite(depths))
+        unknown = np.flatnonzero(np.isnan(depths))
+        if len(known) < 3 or len(unknown) == 0:
+            continue
+        k = int(rng.integers(1, 12))
+        kk = min(k, len(known))
+        dist = np.linalg.norm(uv[unknown][:, None, :] - uv[known][None, :, :], axis=2)
+        nearest = np.argsort(dist, axis=1)[:, :kk]
+        expected = np.median(depths[known][nearest], axis=1)
+        np.testing.assert_allclose(neighbour_depths(uv, depths, k)[unknown], expected,
+                                   rtol=0, atol=1e-12, err_msg=f"trial {trial}, k {k}")
