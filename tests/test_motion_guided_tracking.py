@@ -300,6 +300,11 @@ def test_neighbour_depths_need_three_known_depths():
     three = np.array([5.0, 6.0, 7.0, np.nan])
     np.testing.assert_array_equal(neighbour_depths(uv, three, 8), [5.0, 6.0, 7.0, 6.0])
     np.testing.assert_array_equal(neighbour_depths(uv, three, 1), [5.0, 6.0, 7.0, 7.0])
+    # a point at a non-finite pixel neither gives nor gets a depth
+    uv_nan = np.vstack([uv, [[np.nan, 10.0], [35.0, 10.0]]])
+    d_nan = np.array([5.0, 6.0, 7.0, np.nan, 100.0, np.nan])
+    np.testing.assert_array_equal(neighbour_depths(uv_nan, d_nan, 1)[[3, 5]], [7.0, 7.0])
+    assert np.isnan(neighbour_depths(uv_nan[[4, 0, 1, 2]], np.array([np.nan, 5.0, 6.0, 7.0]), 2)[0])
 
 
 def test_neighbour_depths_are_the_median_of_the_exact_nearest_neighbours():
