@@ -139,14 +139,14 @@ def test_malformed_prediction_is_a_clear_error(texture):
 
 
 
-def _fine_pass_only(img0, img1, displacement_guess):
-    """The guided pass that starts ``guided_levels_above`` levels above the creation level,
-    alone (kernel call, fixed forward-backward limit): the corners of img0 tracked into img1
-    from ``displacement_guess(positions)``. Returns (positions, new positions, status)."""
+def _fine_pass_only(img0, img1, displacement_guess, above=1):
+    """The guided pass that starts ``above`` levels above the creation level, alone (kernel
+    call, fixed forward-backward limit): the corners of img0 tracked into img1 from
+    ``displacement_guess(positions)``. Returns (positions, new positions, status, levels)."""
     from granite.optical_flow.pyramid import build_pyramid
     from granite.optical_flow.tracking import PASS_GUESS_FINE, new_template_cache, track_points
 
-    cfg = OpticalFlowConfig(fb_noise_factor=0.0)
+    cfg = OpticalFlowConfig(fb_noise_factor=0.0, guided_levels_above=above)
     flow = FrameToFrameOpticalFlow(cfg)
     r0 = flow.process(0.0, img0)
     pyr_a = flow._pyramid
@@ -161,7 +161,7 @@ def _fine_pass_only(img0, img1, displacement_guess):
         order=np.array([PASS_GUESS_FINE]), min_zncc_guess=cfg.guess_min_zncc,
         guided_levels_above=cfg.guided_levels_above,
     )
-    return r0.positions, out, status
+    return r0.positions, out, status, r0.levels
 
 
 def test_the_fine_guided_pass_needs_the_prediction_within_its_reach(texture):
@@ -173,12 +173,32 @@ def test_the_fine_guided_pass_needs_the_prediction_within_its_reach(texture):
     rng = np.random.default_rng(5)
     close = lambda p: apply_affine(affine, p) - p + rng.normal(0, 1.0, p.shape)  # noqa: E731
     far = lambda p: apply_affine(affine, p) - p + np.array([14.0, -10.0])  # noqa: E731
-    p0, p1, ok = _fine_pass_only(texture, img1, close)
+    p0, p1, ok, _ = _fine_pass_only(texture, img1, close)
     inside = _in_view(apply_affine(affine, p0))
     err = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1)
     assert ok[inside].mean() > 0.9 and np.median(err[ok]) < 0.1 and np.mean(err[ok] < 1.0) > 0.98
-    _, _, ok_far = _fine_pass_only(texture, img1, far)
+    _, _, ok_far, _ = _fine_pass_only(texture, img1, far)
     assert ok_far[inside].mean() < 0.2
+
+
+def test_the_creation_level_pass_keeps_only_tracks_within_half_a_pixel_of_their_prediction(texture):
+    """From the creation level alone (``guided_levels_above = 0``) a track is kept only when
+    its match lies within 0.5 px (creation-level pixels) of the prediction: predictions 0.3 px
+    off pass, 1-2 px off do not (the pass from one level above takes those), and what passes
+    is right."""
+    affine = similarity(30.0, -20.0, np.radians(2), 1.0, CENTRE)
+    img1 = warp(texture, affine)
+    rng = np.random.default_rng(6)
+    angle = rng.uniform(0, 2 * np.pi, 5000)
+    ring = lambda r: np.column_stack([np.cos(angle), np.sin(angle)]) * r  # noqa: E731
+    for radius, lo, hi in ((0.3, 0.9, 1.0), (1.5, 0.0, 0.02)):
+        guess = lambda p: apply_affine(affine, p) - p + ring(radius)[:len(p)]  # noqa: E731
+        p0, p1, ok, levels = _fine_pass_only(texture, img1, guess, above=0)
+        level0 = _in_view(apply_affine(affine, p0)) & (levels == 0)  # the ring is in level-0 px
+        err = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1)
+        assert lo <= ok[level0].mean() <= hi, (radius, ok[level0].mean())
+        if ok.any():
+            assert np.median(err[ok]) < 0.1 and np.mean(err[ok] < 1.0) > 0.98
 
 
 @pytest.mark.parametrize("offset", [(0.0, 0.0), (14.0, -10.0)])
@@ -192,14 +212,44 @@ def test_the_frontend_tracks_from_a_prediction_near_or_far_as_the_whole_pyramid_
     img1 = warp(texture, affine)
     guess = lambda p: apply_affine(affine, p) + np.array(offset)  # noqa: E731
     kept = []
-    for above in (1, -1):
+    for above in (1, 0, -1):
         cfg = OpticalFlowConfig(levels=4, retry_min_flow=0.0, guided_levels_above=above)
         p0, p1, r0 = _guided_pair(texture, img1, cfg, guess)
         err = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1)
         assert np.median(err) < 0.1 and np.mean(err < 1.0) > 0.98
         kept.append(len(p0))
     n_visible = _in_view(apply_affine(affine, r0.positions)).sum()
-    assert 0.85 * n_visible < kept[1] and kept[0] >= 0.97 * kept[1]
+    assert 0.85 * n_visible < kept[2] and min(kept[:2]) >= 0.97 * kept[2]
+
+
+def test_tracking_from_the_creation_level_keeps_the_tracks_of_the_level_above(texture):
+    """``guided_levels_above = 0`` (track from the prediction on the creation level only,
+    then from one level above, then the whole pyramid) keeps the same tracks as 1 at the same
+    positions, the ones near the image border included: a track whose patch would not fit the
+    level above is rejected as the coarse-to-fine passes reject it. With a prediction 1 px
+    off."""
+    affine = similarity(-21.3, 12.8, np.radians(1.5), 1.0, CENTRE)
+    img1 = warp(texture, affine)
+    rng = np.random.default_rng(8)
+    noise = rng.normal(0, 0.7, (5000, 2))
+    guess = lambda p: apply_affine(affine, p) + noise[:len(p)]  # noqa: E731
+    runs = {}
+    for above in (1, 0):
+        flow = FrameToFrameOpticalFlow(OpticalFlowConfig(guided_levels_above=above))
+        r0 = flow.process(0.0, texture)
+        r1 = flow.process(0.1, img1, predicted=(r0.ids, guess(r0.positions)))
+        tracked = np.isin(r1.ids, r0.ids)  # not the corners detected in img1
+        runs[above] = (r1.ids[tracked], r1.positions[tracked], r1.levels[tracked])
+    ids1, ids0 = runs[1][0], runs[0][0]
+    assert len(ids1) > 150
+    common, i1, i0 = np.intersect1d(ids1, ids0, return_indices=True)
+    assert len(common) >= 0.995 * max(len(ids1), len(ids0))
+    gap = np.linalg.norm(runs[1][1][i1] - runs[0][1][i0], axis=1)
+    assert np.quantile(gap, 0.99) < 0.02 and gap.max() < 0.2
+    border = lambda p: np.minimum.reduce([p[:, 0], W - 1 - p[:, 0], p[:, 1], H - 1 - p[:, 1]])  # noqa: E731
+    # level-0 tracks end as close to the border as the level-1 patch allows, in both modes
+    for _, positions, levels in runs.values():
+        assert border(positions[levels == 0]).min() > 3.9
 
 
 def test_bearing_rotation_recovers_the_rotation_between_predicted_and_tracked_pixels():
@@ -329,3 +379,83 @@ def test_neighbour_depths_are_the_median_of_the_exact_nearest_neighbours():
         expected = np.median(depths[known][nearest], axis=1)
         np.testing.assert_allclose(neighbour_depths(uv, depths, k)[unknown], expected,
                                    rtol=0, atol=1e-12, err_msg=f"trial {trial}, k {k}")
+
+
+def test_prediction_correction_recovers_the_homography_of_the_prediction_error():
+    """Probes whose predictions are off by one homography (plus a quarter of wrong matches):
+    the correction is that homography, and it maps every prediction to the truth."""
+    from granite.optical_flow.probe import corrected_guess, prediction_correction, probe_indices
+
+    rng = np.random.default_rng(11)
+    points = np.column_stack([rng.uniform(0, W, 400), rng.uniform(0, H, 400)])
+    truth_shift = rng.normal(0, 3.0, (400, 2))  # the true motion of each track
+    H_err = np.array([[0.995, -0.03, 14.0], [0.028, 1.004, -9.0], [1e-5, -2e-5, 1.0]])
+    truth = points + truth_shift
+    # predictions off by the inverse of H_err: H_err maps each prediction to the truth
+    h = np.c_[truth, np.ones(400)] @ np.linalg.inv(H_err).T
+    guess = h[:, :2] / h[:, 2:] - points
+    guess[::7] = np.nan  # tracks without a prediction
+    idx = probe_indices(guess, 32)
+    assert len(idx) == 32 and np.isfinite(guess[idx]).all() and np.all(np.diff(idx) > 0)
+    assert idx[0] == np.flatnonzero(np.isfinite(guess[:, 0]))[0]
+    tracked = truth[idx].copy()
+    tracked[::4] += rng.uniform(-30, 30, (8, 2))  # wrong matches
+    H_fit = prediction_correction(points[idx] + guess[idx], tracked)
+    np.testing.assert_allclose(H_fit / H_fit[2, 2], H_err, rtol=1e-4, atol=1e-7)
+    fixed = corrected_guess(points, guess, H_fit)
+    has = np.isfinite(guess[:, 0])
+    np.testing.assert_allclose((points + fixed)[has], truth[has], atol=1e-3)
+    assert np.isnan(fixed[~has]).all()
+    # too few probes, or too few agreeing: no correction
+    assert prediction_correction(points[idx[:7]] + guess[idx[:7]], truth[idx[:7]]) is None
+    scattered = truth[idx] + rng.uniform(-40, 40, (32, 2))
+    scattered[:10] = truth[idx[:10]]
+    assert prediction_correction(points[idx] + guess[idx], scattered) is None
+    assert len(probe_indices(guess, 0)) == 0 and len(probe_indices(guess[:5], 32)) == 0
+
+
+@pytest.mark.parametrize("above", [1, 0])
+def test_probes_correct_predictions_that_are_all_off_by_the_same_image_motion(texture, above):
+    """Predictions 18 px and 2 degrees off (a wrong camera rotation moves every prediction by
+    about the same image transformation): with probe tracking the frontend keeps the same
+    tracks at the same positions as without, and starts the other tracks from corrected
+    predictions (within half a pixel of the truth)."""
+    from granite.optical_flow.frame_to_frame import _probe
+
+    affine = similarity(21.0, 9.0, np.radians(1.0), 1.0, CENTRE)
+    off = similarity(-15.0, 10.0, np.radians(2.0), 1.0, CENTRE)
+    img1 = warp(texture, affine)
+    guess_of = lambda p: apply_affine(off, apply_affine(affine, p))  # noqa: E731
+    results = {}
+    for probes in (0, 32):
+        cfg = OpticalFlowConfig(probe_points=probes, guided_levels_above=above)
+        p0, p1, r0 = _guided_pair(texture, img1, cfg, guess_of)
+        err = np.linalg.norm(p1 - apply_affine(affine, p0), axis=1)
+        assert np.median(err) < 0.1 and np.mean(err < 1.0) > 0.98
+        results[probes] = dict(zip(map(tuple, p0), p1))
+    common = set(results[0]) & set(results[32])
+    assert len(common) >= 0.99 * max(len(results[0]), len(results[32]))
+    gap = [np.linalg.norm(results[0][k] - results[32][k]) for k in common]
+    assert np.quantile(gap, 0.99) < 0.05
+    # the corrected predictions themselves
+    cfg = OpticalFlowConfig(guided_levels_above=above)
+    flow = FrameToFrameOpticalFlow(cfg)
+    r0 = flow.process(0.0, texture)
+    from granite.optical_flow.pyramid import build_pyramid
+    from granite.optical_flow.tracking import new_template_cache, pass_order
+    pyr_a, pyr_b = flow._pyramid, build_pyramid(img1, cfg.levels, presmooth_sigma=cfg.presmooth_sigma)
+    n, p = len(r0.ids), len(flow._pattern)
+    guess = guess_of(r0.positions) - r0.positions
+    images = (pyr_a.data, pyr_a.offsets, pyr_a.widths, pyr_a.heights,
+              pyr_b.data, pyr_b.offsets, pyr_b.widths, pyr_b.heights)
+    tail = (flow._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow)
+    cache_b = new_template_cache(n, cfg.levels, p)
+    fixed, (done, done_points, _) = _probe(
+        images, r0.positions, r0.levels, np.full(n, -1), new_template_cache(0, cfg.levels, p), cache_b,
+        tail, guess, pass_order(True, 0, True, above == 0), 32, dict(min_zncc_guess=cfg.guess_min_zncc))
+    truth = apply_affine(affine, r0.positions)
+    inside = _in_view(truth)
+    assert np.median(np.linalg.norm(guess[inside] + r0.positions[inside] - truth[inside], axis=1)) > 15
+    assert np.quantile(np.linalg.norm(fixed[inside] + r0.positions[inside] - truth[inside], axis=1), 0.9) < 0.5
+    assert 24 <= done.sum() <= 32 and (cache_b[0][done] >= 0).any(axis=1).all()
+    np.testing.assert_allclose(done_points[done], truth[done], atol=0.5)

@@ -270,6 +270,51 @@ def test_grid_pattern_spans_the_diamond_extent():
     assert grid_pattern(2, 1.0).shape == (4, 2)
 
 
+def test_unit_lattice_is_recognised_exactly():
+    """A grid pattern scaled to one-pixel spacing lies on whole (or half) pixels and is taken
+    for the unit lattice; any other pattern, or the lattice in another order or shifted by a
+    tenth of a pixel, is not."""
+    from granite.optical_flow.patch import unit_lattice_side
+    from granite.optical_flow.patterns import grid_pattern
+    for m in (7, 9, 11, 13):
+        g = grid_pattern(m, (m - 1) / 14)
+        np.testing.assert_array_equal(2 * g, np.round(2 * g))
+        assert unit_lattice_side(g) == m
+        assert unit_lattice_side(grid_pattern(m, 0.75)) == 0
+    g = grid_pattern(11, 5 / 7)
+    assert unit_lattice_side(g[::-1].copy()) == 0
+    assert unit_lattice_side(g + 0.1) == 0
+    assert unit_lattice_side(pattern52(0.75)) == 0 and unit_lattice_side(pattern52(1.0)) == 0
+
+
+@pytest.mark.parametrize("m", [7, 11])
+def test_lattice_template_equals_the_sample_by_sample_template(m):
+    """The separable template of a unit lattice against the general per-sample path on the
+    same pattern: centres anywhere, near the border (lattice partly outside: the general path
+    runs) and outside."""
+    from granite.optical_flow.patch import lattice_workspace, make_template_at, unit_lattice_side
+    from granite.optical_flow.patterns import grid_pattern
+    img = textured_image(90, 120, seed=5).astype(np.float32) + 20.0
+    h, w = img.shape
+    pat = grid_pattern(m, (m - 1) / 14)
+    assert unit_lattice_side(pat) == m
+    rng = np.random.default_rng(3)
+    centres = np.vstack([np.column_stack([rng.uniform(0, w, 200), rng.uniform(0, h, 200)]),
+                         [[4.3, 40.0], [w - 5.5, 7.25], [60.0, 60.0], [1.0, 1.0]]])
+    caches = [new_template_cache(len(centres), 1, m * m) for _ in range(2)]
+    ws = lattice_workspace(m)
+    states = [[], []]
+    for k, (cx, cy) in enumerate(centres):
+        for j, lattice in enumerate((m, 0)):
+            st, data, valid, jac, aux = caches[j]
+            states[j].append(make_template_at(img.ravel(), 0, w, h, cx, cy, pat, 2.0, data, valid,
+                                              jac, aux, k, 0, lattice, ws))
+    assert states[0] == states[1] and states[0].count(2) > 100 and 0 in states[0] and 1 in states[0]
+    ok = np.array(states[0]) > 0
+    for a, b in zip(caches[0][1:], caches[1][1:]):
+        np.testing.assert_allclose(a[ok], b[ok], rtol=1e-5, atol=1e-5)
+
+
 def test_presmoothed_pyramid_is_the_blurred_image():
     img = textured_image(60, 80, seed=9)
     pyr = build_pyramid(img, 3, presmooth_sigma=0.7)

@@ -76,8 +76,17 @@ class OpticalFlowConfig:
             tracked from it starting this many levels above its creation level only (a
             prediction within a few pixels needs no coarse level, and every level costs as
             much as the finest); if that fails, from the prediction through the whole
-            pyramid, then as without a prediction. Default 1: the KLT time per frame drops
-            by 20-45 % on the 640x480 bench (``docs/optical_flow.md``).
+            pyramid, then as without a prediction (1: the KLT time per frame drops by 20-45 %
+            on the 640x480 bench against -1, ``docs/optical_flow.md``). With 0 (the default)
+            a track is kept from its creation level alone only when it ended within half a
+            pixel of its prediction and its patch would fit the level above (the
+            coarse-to-fine passes require that); otherwise the pass from one level above
+            decides (another 30 % of the KLT time on the spiral).
+        probe_points: not in the reference (0 disables; the reference has no predictions).
+            With predictions, this many tracks (evenly spaced over the tracks with one) are
+            tracked first, through all passes; a homography from their predicted to their
+            tracked positions (RANSAC 2 px, at least 8 and half of them agreeing) then
+            corrects the other tracks' predictions (:mod:`granite.optical_flow.probe`).
         local_retry_rounds: not in the reference (0 disables: the default and the reference). After the
             other passes, the points still not tracked are tracked again from the median
             displacement of their ``local_retry_neighbours`` nearest tracked points (forward
@@ -126,8 +135,10 @@ class OpticalFlowConfig:
                                        doc="0 disables")
     guess_min_zncc: float = spec_field(0.9, -1.0, 1.0, origin="ours", reference=-1.0,
                                        doc="-1 disables; used by guided and local-flow tracking")
-    guided_levels_above: int = spec_field(1, -1, 20, origin="ours", reference=-1,
+    guided_levels_above: int = spec_field(0, -1, 20, origin="ours", reference=-1,
                                           doc="-1: the whole pyramid only (the reference's tracking)")
+    probe_points: int = spec_field(32, 0, 10000, origin="ours", reference=0,
+                                   doc="0 disables (the reference)")
     local_retry_rounds: int = spec_field(0, 0, 10, origin="ours", doc="0 disables (the default and the reference)")
     local_retry_neighbours: int = spec_field(8, 3, 64, origin="ours")
     fb_noise_factor: float = spec_field(3.0, 0.0, 100.0, origin="ours", reference=0.0,

@@ -32,6 +32,7 @@ from granite.optical_flow.noise import estimate_noise, level_noise_gains
 from granite.optical_flow.patterns import make_pattern
 from granite.optical_flow.work_share import PointShare
 from granite.optical_flow.pyramid import SUPPORTED_DTYPES, ImagePyramid, build_pyramid
+from granite.optical_flow.probe import corrected_guess, prediction_correction, probe_indices
 from granite.optical_flow.tracking import PASS_GUESS, new_template_cache, pass_order, track_points
 
 
@@ -298,11 +299,15 @@ class FrameToFrameOpticalFlow:
                 images = (prev.data, prev.offsets, prev.widths, prev.heights,
                           pyramid.data, pyramid.offsets, pyramid.widths, pyramid.heights)
                 tail = (self._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow)
+                order = pass_order(guess is not None, cfg.local_retry_rounds, cfg.guided_levels_above >= 0,
+                                   near_after_fine=cfg.guided_levels_above == 0)
+                guesses, preset = guess, None
+                if guess is not None and cfg.probe_points > 0:
+                    guesses, preset = _probe(images, points, levels, rows, cache_a, cache_b, tail, guess, order,
+                                             cfg.probe_points, common)
                 result = track_points(
                     *images, points, levels, rows, *cache_a, *cache_b, *tail,
-                    guess=guess, order=pass_order(guess is not None, cfg.local_retry_rounds,
-                                                  cfg.guided_levels_above >= 0),
-                    executor=executor, share=share, **common,
+                    guess=guesses, order=order, executor=executor, share=share, preset=preset, **common,
                 )
                 lost = ~result[2]
                 if (cfg.global_retry_min_lost > 0.0 and prev_u8 is not None and len(lost) >= _GLOBAL_RETRY_MIN_POINTS
@@ -444,6 +449,32 @@ def _level0_u8(prep: PreparedImage) -> np.ndarray:
     if prep.images_u8 is not None and 0 in prep.images_u8:
         return prep.images_u8[0]
     return prep.pyramid.level_uint8(0)
+
+
+def _probe(images, points, levels, rows, cache_a, cache_b, tail, guess, order, count, common):
+    """Probe tracking (:mod:`granite.optical_flow.probe`): track ``count`` probes first (all
+    passes of ``order``, one thread), correct the other tracks' predictions by the homography
+    their results give, and return ``(guesses, preset)`` for :func:`track_points` (the found
+    probes' templates in image B are copied into ``cache_b``)."""
+    idx = probe_indices(guess, count)
+    if not len(idx):
+        return guess, None
+    sub_cache = new_template_cache(len(idx), cache_b[1].shape[1], cache_b[1].shape[2])
+    new_points, theta, status = track_points(
+        *images, points[idx], levels[idx], rows[idx], *cache_a, *sub_cache, *tail,
+        guess=guess[idx], order=order, **common)
+    found = idx[status]
+    for a, sub in zip(cache_b, sub_cache):
+        a[found] = sub[status]
+    done = np.zeros(len(points), dtype=bool)
+    done[found] = True
+    done_points = np.zeros_like(points)
+    done_points[found] = new_points[status]
+    done_theta = np.zeros(len(points))
+    done_theta[found] = theta[status]
+    H = prediction_correction(points[found] + guess[found], new_points[status])
+    guesses = guess if H is None else corrected_guess(points, guess, H)
+    return guesses, (done, done_points, done_theta)
 
 
 def _global_retry(result, lost, image_a, image_b, images, points, levels, rows, cache_a, cache_b,

@@ -7,7 +7,11 @@ pixels of the level the patch is sampled on.
 
 ``gridN`` is an N x N square lattice over the same extent (±7 px before scaling; spacing
 14 / (N - 1) px): more samples per patch, so less image noise in the estimate (ours; the
-reference uses the 52-point diamond, see ``docs/optical_flow.md``).
+reference uses the 52-point diamond, see ``docs/optical_flow.md``). With the scale
+``(N - 1) / 14`` its spacing is one pixel (``grid11`` at ``5 / 7``: ±5 px); offsets within
+1e-9 px of a multiple of 0.5 px are then rounded to it, so the samples of a patch lie exactly one
+pixel apart and share their bilinear weights (the tracker's fast template path,
+:func:`granite.optical_flow.patch.unit_lattice_side`).
 """
 
 from __future__ import annotations
@@ -44,9 +48,15 @@ def grid_pattern(n: int, scale: float = 0.75) -> np.ndarray:
     float64, (x, y) offsets, rows from y = +7 down as the diamond."""
     if n < 2:
         raise ValueError(f"grid pattern: n must be at least 2, got {n}")
-    g = np.linspace(-7.0, 7.0, n)
+    g = np.linspace(-7.0, 7.0, n) * float(scale)
+    half = np.round(2.0 * g) / 2.0
+    g = np.where(np.abs(g - half) < _SNAP_PX, half, g)
     yy, xx = np.meshgrid(g[::-1], g, indexing="ij")
-    return np.ascontiguousarray(np.column_stack([xx.ravel(), yy.ravel()]) * float(scale))
+    return np.ascontiguousarray(np.column_stack([xx.ravel(), yy.ravel()]))
+
+
+#: Lattice offsets this close to a multiple of 0.5 px are snapped to it [px].
+_SNAP_PX = 1e-9
 
 
 def pattern_size(name: str) -> int:

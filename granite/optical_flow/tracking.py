@@ -23,10 +23,12 @@ from granite.optical_flow.work_share import PointShare, fetch_add
 from granite.optical_flow.patch import (
     AUX_ROWS,
     in_bounds,
+    lattice_workspace,
     make_template_at,
     patch_increment,
     patch_zncc,
     pattern_radius,
+    unit_lattice_side,
 )
 
 #: Gauss-Newton stops early once a step is below 0.01 pixels on the creation level of a patch
@@ -84,14 +86,16 @@ def track_level(
 @njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
 def track_point_at(
     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
-    x0, y0, gx, gy, level, pattern, radius, pattern_c, radius_c, margin, iterations, st, data, valid,
-    jac, aux, pt, top=-1,
+    x0, y0, gx, gy, level, pattern, radius, pattern_c, radius_c, lattice, lattice_c, lattice_ws, margin,
+    iterations, st, data, valid, jac, aux, pt, top=-1,
 ):
     """:func:`track_point` with the templates of point ``pt`` of template arrays of many points
     (``st`` (N, L), ``data`` (N, L, P), ``valid`` (N, L, P), ``jac`` (N, L, P, 3), ``aux``
     (N, L, 5, 3)), read and written without making views of them. Levels above the creation
     level use ``pattern_c`` (at most P samples; its radius ``radius_c``), the creation level
-    ``pattern``: a point's template on a level is always made with the same one of the two."""
+    ``pattern``: a point's template on a level is always made with the same one of the two.
+    ``lattice`` and ``lattice_c``: their :func:`~granite.optical_flow.patch.unit_lattice_side`;
+    ``lattice_ws``: a :func:`~granite.optical_flow.patch.lattice_workspace` for the larger."""
     tx = gx
     ty = gy
     theta = 0.0
@@ -104,7 +108,7 @@ def track_point_at(
         if st[pt, lvl] < 0:
             st[pt, lvl] = make_template_at(
                 buf_a, offs_a[lvl], ws_a[lvl], hs_a[lvl], x0 / scale, y0 / scale,
-                pat, margin, data, valid, jac, aux, pt, lvl,
+                pat, margin, data, valid, jac, aux, pt, lvl, lattice if fine else lattice_c, lattice_ws,
             )
         ok = st[pt, lvl] > 0
         if ok:
@@ -139,9 +143,11 @@ def track_point(
     yet: computed here and stored). ``top`` >= 0 starts at that level instead of the
     coarsest.
     """
+    lattice = unit_lattice_side(pattern)
     return track_point_at(
         buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
-        x0, y0, gx, gy, level, pattern, radius, pattern, radius, margin, iterations,
+        x0, y0, gx, gy, level, pattern, radius, pattern, radius, lattice, lattice,
+        lattice_workspace(lattice), margin, iterations,
         st.reshape((1,) + st.shape), data.reshape((1,) + data.shape),
         valid.reshape((1,) + valid.shape), jac.reshape((1,) + jac.shape),
         aux.reshape((1,) + aux.shape), 0, top,
@@ -177,6 +183,12 @@ PASS_GUESS = 1  # the caller's per-point predicted displacement
 PASS_MEDIAN = 2  # the median displacement of the points tracked so far (retry_min_flow)
 PASS_LOCAL = 3  # the median displacement of each point's nearest tracked neighbours
 PASS_GUESS_FINE = 4  # the caller's guess, from ``guided_levels_above`` levels above the creation level
+PASS_GUESS_NEAR = 5  # the caller's guess, from one level above the creation level
+
+#: A guided track tracked from its creation level only (``guided_levels_above = 0``) is kept
+#: there only if it ended within this many pixels (of that level) of its prediction; otherwise
+#: the pass from one level above decides (docs/optical_flow.md).
+_CREATION_LEVEL_REACH = 0.5
 
 #: A local-flow retry tracks from the guess on the creation level c and this many levels above
 #: it only (the guess is within a few pixels; coarser levels cost as much as fine ones and are
@@ -189,12 +201,15 @@ _ORDER_UNGUIDED = np.array([PASS_ZERO, PASS_MEDIAN], dtype=np.int64)
 _ORDER_GUIDED = np.array([PASS_GUESS, PASS_ZERO, PASS_MEDIAN], dtype=np.int64)
 
 
-def pass_order(guided: bool, local_rounds: int = 0, fine_first: bool = False) -> np.ndarray:
-    """The passes of :func:`track_points`: [[guess from a fine level,] guess,] zero, median,
-    then ``local_rounds`` local-flow passes."""
+def pass_order(guided: bool, local_rounds: int = 0, fine_first: bool = False,
+               near_after_fine: bool = False) -> np.ndarray:
+    """The passes of :func:`track_points`: [[guess from a fine level, [guess from one level
+    above the creation level,]] guess,] zero, median, then ``local_rounds`` local-flow
+    passes."""
     base = _ORDER_GUIDED if guided else _ORDER_UNGUIDED
     if guided and fine_first:
-        base = np.concatenate([np.array([PASS_GUESS_FINE], dtype=np.int64), base])
+        first = [PASS_GUESS_FINE, PASS_GUESS_NEAR] if near_after_fine else [PASS_GUESS_FINE]
+        base = np.concatenate([np.array(first, dtype=np.int64), base])
     return np.concatenate([base, np.full(max(0, local_rounds), PASS_LOCAL, dtype=np.int64)])
 
 
@@ -205,7 +220,7 @@ def track_points(
     pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
     guess=None, order=None, min_zncc_guess=0.9, local_neighbours=8,
     fb_var=None, fb_max_sq=np.inf, executor=None, guided_levels_above=-1, share=None,
-    pattern_coarse=None,
+    pattern_coarse=None, preset=None,
 ):
     """Track all points of image A into image B with a forward-backward check.
 
@@ -259,6 +274,9 @@ def track_points(
             levels above each point's creation level, which only seed the next finer level;
             default ``pattern``. The creation level, the ZNCC test and the forward-backward
             limit always use ``pattern``.
+        preset: optional ``(done (N,) bool, new_points (N, 2), theta (N,))``: the points
+            marked ``done`` were tracked already (their templates in B filled by the caller);
+            they keep these results, the passes skip them and the median pass counts them.
     Returns:
         (new_points (N, 2), theta (N,), status (N,) bool): status is True when the point was
         tracked A -> B and back B -> A to within ``fb_threshold_sq`` (squared distance in
@@ -294,11 +312,22 @@ def track_points(
     n = points.shape[0]
     if share is None and executor is not None:
         share = PointShare()
-    if share is None or n < _MIN_SHARED:
+    if preset is None and (share is None or n < _MIN_SHARED):
         if share is not None:
             share.close()
         return _track_points(*args, order, *tail)[:3]
     state = _pass_state(n)
+    if preset is not None:
+        done, done_points, done_theta = preset
+        done = np.asarray(done, dtype=np.bool_)
+        state[0][done], state[1][done] = done_points[done], done_theta[done]
+        state[2][done] = True  # status
+        state[3][done] = True  # tried
+    if share is None or n < _MIN_SHARED:
+        if share is not None:
+            share.close()
+        _track_passes(*args, order, *tail, 0, n, *state)
+        return state[0], state[1], state[2]
     m = independent_passes(order)
     if executor is not None:
         executor.submit(share.help)
@@ -320,7 +349,7 @@ def independent_passes(order: np.ndarray) -> int:
     """Number of leading passes of ``order`` that treat each point on its own (guided and
     zero-motion passes): those may be split over disjoint point ranges."""
     m = 0
-    while m < len(order) and int(order[m]) in (PASS_ZERO, PASS_GUESS, PASS_GUESS_FINE):
+    while m < len(order) and int(order[m]) in (PASS_ZERO, PASS_GUESS, PASS_GUESS_FINE, PASS_GUESS_NEAR):
         m += 1
     return m
 
@@ -346,6 +375,27 @@ def _track_points(
         score, local,
     )
     return out, theta, status, score
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def _fits_level(x, y, lvl, ws, hs, pattern, radius, margin):
+    """Whether a patch centred at the level-0 point (x, y) fits level ``lvl`` as a template
+    needs it (:func:`~granite.optical_flow.patch.make_template_at`): its centre and more than
+    half of its samples inside (``margin``)."""
+    scale = float(1 << lvl)
+    cx = x / scale
+    cy = y / scale
+    w = ws[lvl]
+    h = hs[lvl]
+    if not in_bounds(cx, cy, w, h, margin):
+        return False
+    if in_bounds(cx, cy, w, h, margin + radius):
+        return True
+    n = pattern.shape[0]
+    inside = 0
+    for i in range(n):
+        inside += in_bounds(cx + pattern[i, 0], cy + pattern[i, 1], w, h, margin)
+    return 2 * inside > n
 
 
 @njit(cache=True, nogil=True)
@@ -406,10 +456,14 @@ def _track_passes(
     st_s, data_s, valid_s, jac_s, aux_s = _one_point_templates(n_levels, p)
     radius = pattern_radius(pattern)
     radius_c = pattern_radius(pattern_c)
+    lattice = unit_lattice_side(pattern)
+    lattice_c = unit_lattice_side(pattern_c)
+    lattice_ws = lattice_workspace(max(lattice, lattice_c))
     for mode in order:
         flow_x = 0.0
         flow_y = 0.0
-        if (mode == PASS_GUESS or mode == PASS_GUESS_FINE) and not has_guess:
+        guided = mode == PASS_GUESS or mode == PASS_GUESS_FINE or mode == PASS_GUESS_NEAR
+        if guided and not has_guess:
             continue
         if mode == PASS_LOCAL:
             if not local_guesses(points, out, status, local_neighbours, local):
@@ -436,7 +490,7 @@ def _track_passes(
         for k in range(k0, k1):
             if status[k]:
                 continue
-            per_point = mode == PASS_GUESS or mode == PASS_GUESS_FINE or mode == PASS_LOCAL
+            per_point = guided or mode == PASS_LOCAL
             if per_point:
                 if mode != PASS_LOCAL:
                     flow_x = guess[k, 0]
@@ -455,17 +509,27 @@ def _track_passes(
                 top = lvl + _LOCAL_LEVELS_ABOVE
             elif mode == PASS_GUESS_FINE:
                 top = lvl + guided_levels_above
+            elif mode == PASS_GUESS_NEAR:
+                top = lvl + 1
+            # From the creation level only, the level above must still hold the patch (in A
+            # here, in B below), as the coarse-to-fine passes require: the accepted tracks stay
+            # those of the passes that start higher.
+            check_above = mode == PASS_GUESS_FINE and guided_levels_above == 0 and lvl + 1 < n_levels
+            if check_above and not _fits_level(x0, y0, lvl + 1, ws_a, hs_a, pattern_c, radius_c, margin):
+                continue
             if row >= 0:
                 ok, x1, y1, t1 = track_point_at(
                     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
-                    x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, pattern_c, radius_c, margin, iterations,
+                    x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, pattern_c, radius_c, lattice, lattice_c, lattice_ws, margin,
+                    iterations,
                     st_a, data_a, valid_a, jac_a, aux_a, row, top,
                 )
             else:
                 st_s[0, :] = -1
                 ok, x1, y1, t1 = track_point_at(
                     buf_a, offs_a, ws_a, hs_a, buf_b, offs_b, ws_b, hs_b,
-                    x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, pattern_c, radius_c, margin, iterations,
+                    x0, y0, x0 + flow_x, y0 + flow_y, lvl, pattern, radius, pattern_c, radius_c, lattice, lattice_c, lattice_ws, margin,
+                    iterations,
                     st_s, data_s, valid_s, jac_s, aux_s, 0, top,
                 )
             if ok and per_point and min_zncc_guess > -1.0:
@@ -485,6 +549,14 @@ def _track_passes(
                     )
                 score[k] = zn
                 ok = zn >= min_zncc_guess
+            if ok and check_above:
+                # and the match must lie within the creation level's reach of the prediction:
+                # farther, the patch may have settled in a neighbouring minimum, which the pass
+                # from the level above (twice the reach) tells apart
+                scale = float(1 << lvl)
+                moved_sq = ((x1 - x0 - flow_x) ** 2 + (y1 - y0 - flow_y) ** 2) / (scale * scale)
+                ok = (moved_sq < _CREATION_LEVEL_REACH ** 2
+                      and _fits_level(x1, y1, lvl + 1, ws_b, hs_b, pattern_c, radius_c, margin))
             if ok or not tried[k]:
                 out[k, 0] = x1
                 out[k, 1] = y1
@@ -495,7 +567,8 @@ def _track_passes(
             st_b[k, :] = -1  # templates at a new position
             ok, xb, yb, _ = track_point_at(
                 buf_b, offs_b, ws_b, hs_b, buf_a, offs_a, ws_a, hs_a,
-                x1, y1, x1 - flow_x, y1 - flow_y, lvl, pattern, radius, pattern_c, radius_c, margin, iterations,
+                x1, y1, x1 - flow_x, y1 - flow_y, lvl, pattern, radius, pattern_c, radius_c, lattice, lattice_c, lattice_ws, margin,
+                    iterations,
                 st_b, data_b, valid_b, jac_b, aux_b, k, top,
             )
             if not ok:
