@@ -242,8 +242,8 @@ def make_template_at(buf, off, w, h, cx, cy, pattern, margin, data, valid, jac, 
         # The tracker rejects such centres anyway; for a point-symmetric pattern without
         # samples on the axes (like the 52-point one) at most half the samples are inside.
         return 0
-    r = 0.5 * (lattice - 1)
-    if lattice > 0 and in_bounds(cx - r, cy - r, w, h, margin) and in_bounds(cx + r, cy + r, w, h, margin):
+    half = 0.5 * (lattice - 1)  # the lattice's half-width
+    if lattice > 0 and in_bounds(cx - half, cy - half, w, h, margin) and in_bounds(cx + half, cy + half, w, h, margin):
         total, g0, g1, g2 = _sample_lattice(buf, off, w, cx, cy, lattice, pattern, data, valid, jac, pt, lv, ws)
         n_valid = n
     else:

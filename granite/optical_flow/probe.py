@@ -32,7 +32,7 @@ def probe_indices(guess: np.ndarray, count: int) -> np.ndarray:
     age and, as detection fills the image cell by cell, from all over it); empty when fewer
     than ``MIN_INLIERS`` tracks have a prediction or ``count`` is 0."""
     with_guess = np.flatnonzero(np.isfinite(guess).all(axis=1))
-    if count <= 0 or len(with_guess) < max(MIN_INLIERS, 1):
+    if count <= 0 or len(with_guess) < MIN_INLIERS:
         return np.zeros(0, dtype=np.int64)
     if len(with_guess) <= count:
         return with_guess
