@@ -19,7 +19,7 @@ from granite.backend.config import BackendConfig
 from granite.backend.hessian import WindowHessian
 from granite.backend.linearization import ReducedSystem, WindowCost
 from granite.backend.problem import WindowProblem
-from granite.backend.reprojection import LinearizedObservations
+from granite.backend.reprojection import LinearizedObservations, linearize, reprojection_cost
 from granite.backend.schur import back_substitute, solve_normal_equations
 
 #: A Gauss-Newton step "raised the cost" when the new cost exceeds the old one by more than this
@@ -137,6 +137,89 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
     return OptimizeReport(done, costs[0], lambda: cost.cost(problem, cost.no_motion_pairs(problem)),
                           converged, tuple(costs), snapshot,
                           timings, reverted)
+
+
+def optimize_pose(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
+                  pose_index: int, max_iterations: int, with_landmarks: bool = False
+                  ) -> OptimizeReport:
+    """Gauss-Newton on the pose ``pose_index`` (with ``with_landmarks``: and the landmarks of
+    ``problem``), every other pose fixed. Without landmarks (motion-only bundle adjustment)
+    ``problem`` must hold only observations made in that frame (``target_filter``); with
+    them, every observation of its landmarks, which are then eliminated as in
+    :func:`optimize` (the pose's block of the Schur-reduced system is the reduced system of
+    that pose and the landmarks, the other poses held). The frame must host none of the
+    landmarks and be in no prior term: the cost is then the reprojection cost of ``problem``
+    alone. Stops after ``max_iterations`` or when the pose increment is small
+    (:func:`step_is_small`); a step that raised the cost is undone and ends the loop
+    (``report.reverted``). Raises ``FloatingPointError`` when a step makes a state
+    non-finite."""
+    cfg = config
+    pk = problem.packed
+    inv_var = 1.0 / (cfg.obs_std_dev * cfg.obs_std_dev)
+    robust = (inv_var, cfg.huber_threshold, cfg.infinite_obs_factor)
+    rows = slice(6 * pose_index, 6 * pose_index + 6)
+    no_landmark_step = np.zeros((pk.num_landmarks, 3))
+    timings = {"linearize": 0.0, "priors": 0.0, "solve": 0.0, "update": 0.0}
+    costs: list[float] = []
+    converged = reverted = False
+    done = 0
+    for _ in range(int(max_iterations)):
+        t0 = time.perf_counter()
+        if with_landmarks:
+            lin, red = cost.linearize(problem, 0.0)
+        else:
+            lin = linearize(cost.camera, pk, problem.poses, problem.poses_lin, *robust,
+                            problem.workspace)
+        t1 = time.perf_counter()
+        if costs and not lin.cost <= costs[-1] * (1.0 + _COST_RISE_TOLERANCE):
+            problem.restore(undo)
+            reverted = True
+            break
+        costs.append(lin.cost)
+        done += 1
+        dx = np.zeros(6 * len(problem.frame_ids))
+        if with_landmarks:
+            dx[rows] = solve_normal_equations(red.H[rows, rows], red.b[rows])
+            dl = back_substitute(dx, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.w, lin.J_h,
+                                 lin.J_l, lin.t_lin, red.Hll_inv, red.b_l)
+        else:
+            dx[rows] = solve_normal_equations(*target_pose_system(lin, pk.lm_host, pk.obs_lm,
+                                                                  pose_index))
+            dl = no_landmark_step
+        t2 = time.perf_counter()
+        undo = problem.apply_step(dx, dl, cfg.max_inv_dist)
+        timings["linearize"] += t1 - t0
+        timings["solve"] += t2 - t1
+        timings["update"] += time.perf_counter() - t2
+        if not problem.states_finite():
+            raise FloatingPointError("pose refinement diverged (non-finite state)")
+        if step_is_small(dx, cfg, None):
+            converged = True
+            break
+    if done and not reverted and not converged:
+        # the last step is not checked by a next linearisation: check its cost here
+        last = reprojection_cost(cost.camera, pk, problem.poses, *robust)
+        if not last <= costs[-1] * (1.0 + _COST_RISE_TOLERANCE):
+            problem.restore(undo)
+            reverted = True
+    return OptimizeReport(done, costs[0] if costs else 0.0,
+                          lambda: reprojection_cost(cost.camera, pk, problem.poses, *robust),
+                          converged, tuple(costs), None, timings, reverted)
+
+
+def target_pose_system(lin: LinearizedObservations, lm_host: np.ndarray, obs_lm: np.ndarray,
+                       pose_index: int) -> tuple[np.ndarray, np.ndarray]:
+    """The 6x6 normal equations ``(H, b)`` (``H dx = -b``) of the observations of ``lin``
+    over the twist of their (common) target pose ``pose_index``, hosts and landmarks fixed:
+    ``J_t = J_h M`` with ``M = [[-I, [t_h - t_t]x], [0, -I]]``
+    (:func:`granite.backend.schur.relative_map`), whose translation columns are ``-J_v`` and
+    rotation columns ``J_v [d]x - J_w``, and ``a^T [d]x = a x d`` row by row."""
+    J_v, J_w = lin.J_h[:, :, :3], lin.J_h[:, :, 3:]
+    d = lin.t_lin[lm_host[obs_lm]] - lin.t_lin[pose_index]
+    J_t = np.concatenate([-J_v, np.cross(J_v, d[:, None, :]) - J_w], axis=2)
+    H = np.einsum("nai,n,naj->ij", J_t, lin.w, J_t)
+    b = np.einsum("nai,n,na->i", J_t, lin.w, lin.r)
+    return H, b
 
 
 def scene_scale(inv_dist: np.ndarray) -> float | None:

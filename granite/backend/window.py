@@ -38,6 +38,7 @@ from granite.backend.problem import WindowProblem, WorkspacePool
 from granite.backend.reprojection import reprojection_residuals
 from granite.backend.solver import OptimizeReport, SolverState
 from granite.backend.solver import optimize as optimize_problem
+from granite.backend.solver import optimize_pose
 
 
 @dataclasses.dataclass
@@ -241,6 +242,31 @@ class SlidingWindow:
                                   max_iterations, snapshot_iteration)
         if problem.frame_ids:
             self.write_back(problem)
+        return report
+
+    def pose_refinable_alone(self, frame_id: int) -> bool:
+        """Whether :meth:`refine_pose` can optimise the frame's pose alone: it is in the window,
+        hosts no landmark, and is in neither the marginalisation prior nor the scale fix."""
+        fix = self.scale_fix
+        return (frame_id in self._frames and not self.landmarks.hosted_by(frame_id)
+                and frame_id not in self.prior.lin_poses
+                and (fix is None or frame_id not in (fix.frame_i, fix.frame_j)))
+
+    def refine_pose(self, frame_id: int, max_iterations: int,
+                    with_landmarks: bool = False) -> OptimizeReport:
+        """Gauss-Newton on one frame's pose alone (motion-only bundle adjustment on its own
+        observations) or, ``with_landmarks``, on its pose and the landmarks it observes (on
+        all their observations); the other poses fixed, the no-motion prior (weight ``1e-12``
+        by default) left out. Needs :meth:`pose_refinable_alone` (``ValueError`` otherwise);
+        see :func:`granite.backend.solver.optimize_pose`."""
+        if not self.pose_refinable_alone(frame_id):
+            raise ValueError(f"frame {frame_id}: its pose cannot be refined alone")
+        seen = sorted(self.landmarks.observed_in(frame_id))
+        problem = self.problem(seen, None if with_landmarks else {frame_id})
+        k = problem.index[frame_id]
+        report = optimize_pose(problem, self.cost_terms(), self.config, k, max_iterations,
+                               with_landmarks)
+        self.write_back(problem)
         return report
 
     def remove_outliers(self, threshold: float | None = None) -> list[tuple[int, int]]:

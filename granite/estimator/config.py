@@ -157,6 +157,13 @@ class EstimatorConfig:
             frame one outlier bent the estimate (docs/estimator.md).
         outlier_reoptimize_min_fraction: the share of the frame's observations the outlier
             removal must take for the re-optimisation (0: any outlier of the frame).
+        outlier_reoptimize_states: what the re-optimisation after outlier removal optimises:
+            ``"pose"`` the frame's pose alone, landmarks and other poses fixed (motion-only
+            bundle adjustment on its own observations; the whole window when the frame hosts
+            landmarks or is in the prior or the scale fix), ``"pose_and_landmarks"`` the pose
+            and the landmarks it observes (the same fallback), ``"window"`` all states of the
+            window. The outliers pull on the frame they were seen in; the next frame's
+            optimisation re-estimates the rest without them (docs/estimator.md).
     """
 
     keyframe_entropy_fraction: float = spec_field(0.995, 0.0, 1.0, lo_open=True)
@@ -179,6 +186,8 @@ class EstimatorConfig:
     tracked_rotation_guess: bool = spec_field(True, origin="ours", reference=False)
     outlier_reoptimize_iterations: int = spec_field(2, 0, 1000, origin="ours", reference=0)
     outlier_reoptimize_min_fraction: float = spec_field(0.005, 0.0, 1.0, origin="ours")
+    outlier_reoptimize_states: str = spec_field(
+        "pose", choices=("pose", "pose_and_landmarks", "window"), origin="ours")
     reinit_keeps_scale: bool = spec_field(True, origin="ours", reference=False)
     scene_distance_min_points: int = spec_field(20, 1, 100000, origin="ours")
     init_max_candidates: int = spec_field(3, 0, 1000, origin="ours", reference=0)

@@ -268,13 +268,20 @@ class MonocularVO:
     def _reoptimize_without_outliers(self, frame_id: int, removed: list[tuple[int, int]]) -> None:
         """Optimise the window again for ``outlier_reoptimize_iterations`` when the outlier
         removal (``removed``: its ``(landmark, frame)`` pairs) took at least
-        ``outlier_reoptimize_min_fraction`` of the frame's own observations."""
+        ``outlier_reoptimize_min_fraction`` of the frame's own observations: the frame's pose
+        alone or the window (``outlier_reoptimize_states``)."""
         est, win = self.config.estimator, self.window
         removed_here = sum(1 for _, f in removed if f == frame_id)
         if not est.outlier_reoptimize_iterations or removed_here == 0 or frame_id not in win:
             return
         kept = sum(win.num_connected(frame_id))
-        if removed_here >= est.outlier_reoptimize_min_fraction * (kept + removed_here):
+        if removed_here < est.outlier_reoptimize_min_fraction * (kept + removed_here):
+            return
+        states = est.outlier_reoptimize_states
+        if states != "window" and win.pose_refinable_alone(frame_id):
+            self._gn_iterations += win.refine_pose(frame_id, est.outlier_reoptimize_iterations,
+                                                   with_landmarks=states == "pose_and_landmarks").iterations
+        else:
             self._optimize(max_iterations=est.outlier_reoptimize_iterations)
 
     def _optimize(self, **kwargs) -> OptimizeReport:
