@@ -215,11 +215,16 @@ def target_pose_system(lin: LinearizedObservations, lm_host: np.ndarray, obs_lm:
     (:func:`granite.backend.schur.relative_map`), whose translation columns are ``-J_v`` and
     rotation columns ``J_v [d]x - J_w``, and ``a^T [d]x = a x d`` row by row."""
     J_v, J_w = lin.J_h[:, :, :3], lin.J_h[:, :, 3:]
-    d = lin.t_lin[lm_host[obs_lm]] - lin.t_lin[pose_index]
-    J_t = np.concatenate([-J_v, np.cross(J_v, d[:, None, :]) - J_w], axis=2)
-    H = np.einsum("nai,n,naj->ij", J_t, lin.w, J_t)
-    b = np.einsum("nai,n,na->i", J_t, lin.w, lin.r)
-    return H, b
+    d = (lin.t_lin[lm_host[obs_lm]] - lin.t_lin[pose_index])[:, None, :]
+    J_t = np.empty(lin.J_h.shape)
+    J_t[:, :, :3] = -J_v
+    J_t[:, :, 3] = J_v[:, :, 1] * d[:, :, 2] - J_v[:, :, 2] * d[:, :, 1] - J_w[:, :, 0]
+    J_t[:, :, 4] = J_v[:, :, 2] * d[:, :, 0] - J_v[:, :, 0] * d[:, :, 2] - J_w[:, :, 1]
+    J_t[:, :, 5] = J_v[:, :, 0] * d[:, :, 1] - J_v[:, :, 1] * d[:, :, 0] - J_w[:, :, 2]
+    rows = J_t.reshape(-1, 6)
+    weights = np.repeat(lin.w, 2)
+    weighted = rows.T * weights
+    return weighted @ rows, weighted @ lin.r.reshape(-1)
 
 
 def scene_scale(inv_dist: np.ndarray) -> float | None:
