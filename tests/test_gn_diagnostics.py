@@ -1,7 +1,8 @@
 """The optimiser's columns of ``diagnostics.csv``: ``gn_iterations`` (every Gauss-Newton / LM
-iteration spent on a frame) and ``gn_converged`` (whether the frame's main optimisation stopped
+iteration spent on a frame, the pose refinement's included) and ``gn_converged`` (whether the frame's main optimisation stopped
 by its step rule rather than at ``max_iterations``). Checked against the solver's own reports,
-recorded per frame by wrapping :meth:`SlidingWindow.optimize`, and against the stopping rule's
+recorded per frame by wrapping :meth:`SlidingWindow.optimize` and
+:meth:`SlidingWindow.refine_pose`, and against the stopping rule's
 two extremes."""
 
 from __future__ import annotations
@@ -22,17 +23,20 @@ FRAMES = 40
 
 def _run(monkeypatch, backend: dict | None = None):
     """(diagnostics, reports) of the first FRAMES frames; ``reports[i]``: the (kwargs, report)
-    of every ``optimize`` call made while frame i was processed."""
+    of every ``optimize`` and ``refine_pose`` (the re-optimisation after outlier removal) call
+    made while frame i was processed."""
     reports: dict[int, list] = {}
     current = {"frame": None}
-    optimize = SlidingWindow.optimize
 
-    def recording(self, *args, **kwargs):
-        report = optimize(self, *args, **kwargs)
-        reports.setdefault(current["frame"], []).append((kwargs, report))
-        return report
+    def recording(method):
+        def record(self, *args, **kwargs):
+            report = method(self, *args, **kwargs)
+            reports.setdefault(current["frame"], []).append((kwargs, report))
+            return report
+        return record
 
-    monkeypatch.setattr(SlidingWindow, "optimize", recording)
+    monkeypatch.setattr(SlidingWindow, "optimize", recording(SlidingWindow.optimize))
+    monkeypatch.setattr(SlidingWindow, "refine_pose", recording(SlidingWindow.refine_pose))
     ds = open_dataset(ASSET)
     vo = MonocularVO(ds.calibration.camera(), VoConfig.from_dict({"backend": backend or {}}))
     diags = []
