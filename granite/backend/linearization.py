@@ -17,8 +17,9 @@ from granite.backend.config import BackendConfig
 from granite.backend.hessian import WindowHessian
 from granite.backend.priors import MargPrior, ScaleFix, pose_prior_cost, pose_prior_terms
 from granite.backend.problem import WindowProblem
-from granite.backend.reprojection import LinearizedObservations, linearize, reprojection_cost
-from granite.backend.schur import schur_reduce
+from granite.backend.reprojection import (LinearizedObservations, linearize, reprojection_cost,
+                                          residuals_at)
+from granite.backend.schur import reduced_gradient, schur_reduce
 
 
 class ReducedSystem(NamedTuple):
@@ -68,6 +69,26 @@ class WindowCost:
         return ReducedSystem(*schur_reduce(
             len(problem.frame_ids), pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.r, lin.w, lin.J_h,
             lin.J_l, lin.t_lin, self.config.landmark_damping, lm_lambda, with_rhs))
+
+    def regradient(self, problem: WindowProblem, lin: LinearizedObservations,
+                   red: ReducedSystem) -> tuple[LinearizedObservations, ReducedSystem]:
+        """Residuals, cost and gradients at the problem's current states with the Jacobians
+        and reduced Hessian of an earlier ``linearize`` of the same problem (a step that
+        reuses its linearisation, ``[backend] jacobian_reuse_steps``): the gradient is that
+        of the robust cost with the new residuals and weights through the old Jacobians.
+        The returned observations carry the new residuals and cost and the old Jacobians
+        and Hessian weights ``w`` (what :func:`~granite.backend.schur.back_substitute`
+        needs); the returned system the old ``H``, ``H_raw`` and ``Hll_inv``."""
+        cfg = self.config
+        pk = problem.packed
+        r, w, valid, cost = residuals_at(self.camera, pk, problem.poses,
+                                         1.0 / (cfg.obs_std_dev * cfg.obs_std_dev),
+                                         cfg.huber_threshold, cfg.infinite_obs_factor)
+        b_raw, b_red, b_l = reduced_gradient(len(problem.frame_ids), pk.lm_ptr, pk.lm_host,
+                                             pk.obs_tgt, r, w, lin.w, lin.J_h, lin.J_l,
+                                             lin.t_lin, red.Hll_inv)
+        return (LinearizedObservations(r, lin.w, lin.J_h, lin.J_l, lin.t_lin, cost, valid),
+                ReducedSystem(red.H_raw, b_raw, red.H, b_red, red.Hll_inv, b_l))
 
     def prior_terms(self, problem: WindowProblem, pairs: list[tuple[int, int]],
                     include: set[int] | None = None, with_rhs: bool = True):

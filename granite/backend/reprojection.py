@@ -241,6 +241,79 @@ def linearize_fused(model: int, kp: np.ndarray, poses: np.ndarray, poses_lin: np
                             r, w, J_h, J_l, valid)
 
 
+def _residuals_fused(model, kp, poses, lm_host, lm_s, lm_d, obs_lm, obs_tgt, obs_uv,
+                     obs_level, inv_var, huber, inf_factor, r, w, valid):
+    """Typing stub of :func:`residuals_fused`'s loop for one camera model (njit only)."""
+    raise NotImplementedError
+
+
+@overload(_residuals_fused, prefer_literal=True, jit_options={"cache": True})
+def _residuals_fused_loop(model, kp, poses, lm_host, lm_s, lm_d, obs_lm, obs_tgt, obs_uv,
+                          obs_level, inv_var, huber, inf_factor, r, w, valid):
+    """The loop specialised on the camera model (its per-point projection inlined)."""
+    if not isinstance(model, types.IntegerLiteral):
+        return None
+    model_id = model.literal_value
+    nk = batch.num_intrinsics(model_id)
+
+    def loop(model, kp, poses, lm_host, lm_s, lm_d, obs_lm, obs_tgt, obs_uv, obs_level,
+             inv_var, huber, inf_factor, r, w, valid):
+        p = np.empty((1, 3))
+        uv = np.empty((1, 2))
+        no_jp = np.empty((0, 2, 3))
+        no_jk = np.empty((0, 2, nk))
+        b = np.empty(3)
+        Jb = np.empty((3, 2))
+        cost = 0.0
+        for k in range(obs_lm.shape[0]):
+            i = obs_lm[k]
+            h = lm_host[i]
+            t = obs_tgt[k]
+            d = lm_d[i]
+            bearing_from_stereo_into(lm_s[i, 0], lm_s[i, 1], b, Jb)
+            if h == t:
+                for c in range(3):
+                    p[0, c] = b[c]
+            else:
+                _point_in_target(poses[h], poses[t], b, d, p, 0)
+            ok = batch.project_point(model_id, kp, p, 0, uv, no_jp, no_jk, False)
+            valid[k] = ok
+            if not ok:
+                w[k] = 0.0
+                r[k, 0] = 0.0
+                r[k, 1] = 0.0
+                continue
+            r0 = uv[0, 0] - obs_uv[k, 0]
+            r1 = uv[0, 1] - obs_uv[k, 1]
+            e = math.sqrt(r0 * r0 + r1 * r1)
+            hw = 1.0 if e < huber else huber / e
+            w0 = _obs_weight(obs_level[k], d, inv_var, inf_factor)
+            cost += (2.0 - hw) * hw * w0 * e * e
+            w[k] = hw * w0
+            r[k, 0] = r0
+            r[k, 1] = r1
+        return cost
+
+    return loop
+
+
+@numba.njit(cache=True, nogil=True)
+def residuals_fused(model: int, kp: np.ndarray, poses: np.ndarray, lm_host, lm_s, lm_d,
+                    obs_lm, obs_tgt, obs_uv, obs_level, inv_var: float, huber: float,
+                    inf_factor: float, r, w, valid) -> float:
+    """The residuals ``r`` (N,2), robust weights ``w`` (N,), validity ``valid`` (N,) and robust
+    cost of :func:`linearize_fused` at ``poses``, without Jacobians (the same values, by the
+    same arithmetic, as its residual at the estimate)."""
+    if model == KB4:
+        return _residuals_fused(KB4, kp, poses, lm_host, lm_s, lm_d, obs_lm, obs_tgt, obs_uv,
+                                obs_level, inv_var, huber, inf_factor, r, w, valid)
+    if model == DS:
+        return _residuals_fused(DS, kp, poses, lm_host, lm_s, lm_d, obs_lm, obs_tgt, obs_uv,
+                                obs_level, inv_var, huber, inf_factor, r, w, valid)
+    return _residuals_fused(PINHOLE, kp, poses, lm_host, lm_s, lm_d, obs_lm, obs_tgt, obs_uv,
+                            obs_level, inv_var, huber, inf_factor, r, w, valid)
+
+
 @numba.njit(cache=True, nogil=True)
 def robust_cost(uv: np.ndarray, valid: np.ndarray, obs_uv: np.ndarray, obs_level: np.ndarray,
                 obs_lm: np.ndarray, lm_d: np.ndarray, inv_var: float, huber: float,
@@ -318,6 +391,23 @@ def linearize(camera, packed: PackedObservations, poses: np.ndarray, poses_lin: 
                            inf_factor, ws.r, ws.w, ws.J_h, ws.J_l, valid)
     t_lin = np.ascontiguousarray(poses_lin[:, :3, 3])
     return LinearizedObservations(ws.r, ws.w, ws.J_h, ws.J_l, t_lin, cost, valid)
+
+
+def residuals_at(camera, packed: PackedObservations, poses: np.ndarray, inv_var: float,
+                 huber: float, inf_factor: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Residuals ``r`` (N,2), robust weights ``w`` (N,), validity (N,) and robust cost at
+    ``poses`` and the landmark states of ``packed``: what :func:`linearize` gives at the
+    estimate, without Jacobians (:func:`residuals_fused`)."""
+    n = packed.num_observations
+    r = np.empty((n, 2))
+    w = np.empty(n)
+    valid = np.empty(n, dtype=np.bool_)
+    cost = residuals_fused(camera.kernel_model, camera.kernel_params, poses, packed.lm_host,
+                           packed.lm_s, packed.lm_d, packed.obs_lm, packed.obs_tgt,
+                           packed.obs_uv, packed.obs_level, inv_var, huber, inf_factor, r, w,
+                           valid)
+    return r, w, valid, float(cost)
 
 
 def reprojection_residuals(camera, packed: PackedObservations, poses: np.ndarray

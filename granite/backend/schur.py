@@ -441,6 +441,75 @@ def schur_reduce(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray, obs_tg
 
 
 @numba.njit(cache=True, nogil=True)
+def reduced_gradient(num_poses: int, lm_ptr: np.ndarray, lm_host: np.ndarray,
+                     obs_tgt: np.ndarray, r: np.ndarray, w: np.ndarray, w_hess: np.ndarray,
+                     J_h: np.ndarray, J_l: np.ndarray, t_lin: np.ndarray,
+                     Hll_inv: np.ndarray):
+    """The gradients of :func:`schur_reduce` for new residuals ``r`` and weights ``w`` with the
+    Jacobians, Hessian weights ``w_hess`` and landmark inverses ``Hll_inv`` of an earlier
+    call: ``(b_raw, b_red, b_l)`` with ``b_l_i = sum J_l^T w r``, ``b_raw = sum J_p^T w r``
+    (6K,) and ``b_red = b_raw - sum_i H_pi Hll_inv_i b_l_i``, ``H_pi = sum J_p^T w_hess J_l``.
+    With ``H`` of the earlier call, ``H dx = -b_red`` and :func:`back_substitute` (``w_hess``,
+    ``b_l``) give the step that reuses its linearisation (``[backend] jacobian_reuse_steps``);
+    with the same ``r``, ``w`` as that call it gives its ``b``."""
+    K = num_poses
+    m = lm_ptr.shape[0] - 1
+    b = np.zeros(6 * K)
+    sb = np.zeros(6 * K)
+    b_l = np.zeros((m, 3))
+    y = np.zeros(3)
+    g = np.zeros(6)
+    s = np.zeros(6)
+    for i in range(m):
+        h = lm_host[i]
+        g0 = 0.0
+        g1 = 0.0
+        g2 = 0.0
+        for k in range(lm_ptr[i], lm_ptr[i + 1]):
+            wk = w[k]
+            if wk == 0.0:
+                continue
+            r0 = wk * r[k, 0]
+            r1 = wk * r[k, 1]
+            g0 += J_l[k, 0, 0] * r0 + J_l[k, 1, 0] * r1
+            g1 += J_l[k, 0, 1] * r0 + J_l[k, 1, 1] * r1
+            g2 += J_l[k, 0, 2] * r0 + J_l[k, 1, 2] * r1
+        b_l[i, 0] = g0
+        b_l[i, 1] = g1
+        b_l[i, 2] = g2
+        for c in range(3):
+            y[c] = Hll_inv[i, c, 0] * g0 + Hll_inv[i, c, 1] * g1 + Hll_inv[i, c, 2] * g2
+        for k in range(lm_ptr[i], lm_ptr[i + 1]):
+            t = obs_tgt[k]
+            if t == h:
+                continue
+            wk = w[k]
+            wh = w_hess[k]
+            r0 = wk * r[k, 0]
+            r1 = wk * r[k, 1]
+            # J_l y per pixel row, weighted by the Hessian's weight
+            e0 = wh * (J_l[k, 0, 0] * y[0] + J_l[k, 0, 1] * y[1] + J_l[k, 0, 2] * y[2])
+            e1 = wh * (J_l[k, 1, 0] * y[0] + J_l[k, 1, 1] * y[1] + J_l[k, 1, 2] * y[2])
+            for c in range(6):
+                g[c] = J_h[k, 0, c] * r0 + J_h[k, 1, c] * r1
+                s[c] = J_h[k, 0, c] * e0 + J_h[k, 1, c] * e1
+            # host: += g, target: += M^T g = [-g_v, g_v x d - g_w] (d = t_h - t_t)
+            d0 = t_lin[h, 0] - t_lin[t, 0]
+            d1 = t_lin[h, 1] - t_lin[t, 1]
+            d2 = t_lin[h, 2] - t_lin[t, 2]
+            for src, dst in ((g, b), (s, sb)):
+                for c in range(6):
+                    dst[6 * h + c] += src[c]
+                dst[6 * t + 0] -= src[0]
+                dst[6 * t + 1] -= src[1]
+                dst[6 * t + 2] -= src[2]
+                dst[6 * t + 3] += src[1] * d2 - src[2] * d1 - src[3]
+                dst[6 * t + 4] += src[2] * d0 - src[0] * d2 - src[4]
+                dst[6 * t + 5] += src[0] * d1 - src[1] * d0 - src[5]
+    return b, b - sb, b_l
+
+
+@numba.njit(cache=True, nogil=True)
 def back_substitute(dx: np.ndarray, lm_ptr: np.ndarray, lm_host: np.ndarray,
                     obs_tgt: np.ndarray, w: np.ndarray, J_h: np.ndarray, J_l: np.ndarray,
                     t_lin: np.ndarray, Hll_inv: np.ndarray, b_l: np.ndarray) -> np.ndarray:

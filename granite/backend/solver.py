@@ -47,6 +47,9 @@ class OptimizeReport:
     timings: dict[str, float]
     #: a Gauss-Newton step raised the cost and was undone (Levenberg-Marquardt took over).
     reverted: bool = False
+    #: linearisations with landmark elimination (the others of ``iterations`` reused one:
+    #: ``config.jacobian_reuse_steps``); 0 where not counted (:func:`optimize_pose`).
+    linearizations: int = 0
 
     @functools.cached_property
     def final_cost(self) -> float:
@@ -63,18 +66,29 @@ class SolverState:
 
 def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
              state: SolverState, max_iterations: int | None = None,
-             snapshot_iteration: int | None = None) -> OptimizeReport:
+             snapshot_iteration: int | None = None,
+             reuse_linearizations: bool = True) -> OptimizeReport:
     """Optimise the problem's states in place (see the module docstring).
 
-    Plain Gauss-Newton unless ``config.use_lm`` or ``state`` says Levenberg-Marquardt. Stops
-    after ``max_iterations`` (default ``config.max_iterations``) or when the pose increment is
-    small (:func:`step_is_small`). A Gauss-Newton step that raises the cost is
+    Plain Gauss-Newton unless ``config.use_lm`` or ``state`` says Levenberg-Marquardt. After
+    each linearisation up to ``config.jacobian_reuse_steps`` further Gauss-Newton steps reuse
+    its Jacobians, Hessian weights and reduced Hessian with the gradient at the new states
+    (:meth:`WindowCost.regradient`), while its Jacobians keep their form (no landmark reached
+    or left infinity, no projection became valid or invalid) and the last step lowered the
+    cost by what the linearisation predicted (:data:`REUSE_GAIN_TOLERANCE`); a reused step
+    that raised the cost is undone and the states linearised again. Stops after
+    ``max_iterations`` linearisations (default ``config.max_iterations``; the reused steps do
+    not count, ``report.iterations`` counts every step) or when the pose increment is small
+    (:func:`step_is_small`). ``reuse_linearizations=False`` linearises at every step whatever
+    the setting. ``snapshot`` is the system of the last step whose linearisation
+    was at most the ``snapshot_iteration``-th (0-based). A Gauss-Newton step that raises the cost is
     undone and the remaining iterations, and the next ``config.lm_calls_after_failed_step``
     calls, are Levenberg-Marquardt steps (``report.reverted``). Raises ``FloatingPointError``
     when a step makes the state non-finite.
     """
     cfg = config
     iters = cfg.max_iterations if max_iterations is None else int(max_iterations)
+    reuse_steps = cfg.jacobian_reuse_steps if reuse_linearizations else 0
     pk = problem.packed
     timings = {"linearize": 0.0, "priors": 0.0, "solve": 0.0, "update": 0.0}
     costs: list[float] = []
@@ -90,35 +104,76 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
         return OptimizeReport(0, 0.0, lambda: 0.0, True, (), None, timings)
     # the scene's scale only matters to the relative translation rule (off by default)
     scale = scene_scale(pk.lm_d) if cfg.translation_step_tolerance > 0.0 else None
-    for it in range(iters):
+    base = None  # the last linearisation, and how many more steps may reuse it
+    base_at_infinity = None
+    reuse_left = 0
+    linearizations = 0
+    passes = 0
+    step_reused = False  # the last step came from a reused linearisation
+    predicted = 0.0  # the cost decrease the last step's linearisation predicted
+    while True:
         t0 = time.perf_counter()
-        lin, red = cost.linearize(problem, 0.0)
-        t1 = time.perf_counter()
-        pairs = cost.no_motion_pairs(problem)
-        system = cost.system(problem, lin, red, pairs)
-        t2 = time.perf_counter()
-        timings["linearize"] += t1 - t0
-        timings["priors"] += t2 - t1
+        priors_before = timings["priors"]
+        # reuse the last linearisation while its Jacobians keep their form: no landmark
+        # reached or left infinity, no projection became valid or invalid ...
+        reuse = (not lm_mode and base is not None and reuse_left > 0
+                 and np.array_equal(pk.lm_d == 0.0, base_at_infinity))
+        if reuse:
+            lin, red = cost.regradient(problem, *base)
+            reuse_left -= 1
+            reuse = bool(np.array_equal(lin.valid, base[0].valid))
+        if reuse:
+            t1 = time.perf_counter()
+            pairs = cost.no_motion_pairs(problem)
+            system = cost.system(problem, lin, red, pairs)
+            timings["priors"] += time.perf_counter() - t1
+            # ... and the last step lowered the cost as the linearisation predicted (a rise
+            # is handled below)
+            reuse = (not system.cost <= costs[-1] * (1.0 + _COST_RISE_TOLERANCE)
+                     or _model_agrees(costs[-1] - system.cost, predicted))
+        if not reuse:
+            if linearizations >= iters:
+                break
+            lin, red = cost.linearize(problem, 0.0)
+            base = (lin, red)
+            base_at_infinity = pk.lm_d == 0.0
+            reuse_left = reuse_steps
+            linearizations += 1
+            t1 = time.perf_counter()
+            pairs = cost.no_motion_pairs(problem)
+            system = cost.system(problem, lin, red, pairs)
+            timings["priors"] += time.perf_counter() - t1
+        passes += 1
+        timings["linearize"] += time.perf_counter() - t0 - (timings["priors"] - priors_before)
         if (not lm_mode and undo is not None
                 and not system.cost <= costs[-1] * (1.0 + _COST_RISE_TOLERANCE)):
+            problem.restore(undo)
+            undo = None
+            if step_reused:
+                # a step of a reused linearisation raised the cost: linearise again there
+                reuse_left = 0
+                continue
             # The last Gauss-Newton step raised the cost (far from the minimum, or from the
             # first estimates of marginalised states): undo it and go on with damped
             # (Levenberg-Marquardt) steps, which only accept steps that lower the cost.
-            problem.restore(undo)
-            reverted, lm_mode, undo = True, True, None
+            reverted, lm_mode = True, True
             state.lm_calls_left = cfg.lm_calls_after_failed_step
             continue
         costs.append(system.cost)
-        if snapshot_iteration is not None and it <= snapshot_iteration:
+        if snapshot_iteration is not None and linearizations - 1 <= snapshot_iteration:
             snapshot = system
-        done = it + 1
+        done = passes
         if not lm_mode:
             t3 = time.perf_counter()
             dx = solve_normal_equations(system.H, system.b)
+            predicted = predicted_decrease(system.b, dx, red.b_l, red.Hll_inv)
             dl = back_substitute(dx, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.w, lin.J_h,
                                  lin.J_l, lin.t_lin, red.Hll_inv, red.b_l)
             t4 = time.perf_counter()
             undo = problem.apply_step(dx, dl, cfg.max_inv_dist)
+            step_reused = reuse
+            if reuse_steps and not reuse and not step_is_small(dx / REUSE_MAX_STEP, cfg, scale):
+                reuse_left = 0  # far from convergence: the next step linearises again
             t5 = time.perf_counter()
             timings["solve"] += t4 - t3
             timings["update"] += t5 - t4
@@ -136,7 +191,7 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
     # the problem's states are final here and nothing changes them later
     return OptimizeReport(done, costs[0], lambda: cost.cost(problem, cost.no_motion_pairs(problem)),
                           converged, tuple(costs), snapshot,
-                          timings, reverted)
+                          timings, reverted, linearizations)
 
 
 def optimize_pose(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
@@ -225,6 +280,31 @@ def target_pose_system(lin: LinearizedObservations, lm_host: np.ndarray, obs_lm:
     weights = np.repeat(lin.w, 2)
     weighted = rows.T * weights
     return weighted @ rows, weighted @ lin.r.reshape(-1)
+
+
+#: A linearisation is reused for the next step only while the cost decrease of the last step
+#: is within this fraction of the decrease its quadratic model predicted: there the
+#: Jacobians barely change along the step (a gain-ratio test as in trust-region methods).
+REUSE_GAIN_TOLERANCE = 0.1
+#: ... and only after a step within this factor of the stopping tolerances
+#: (:func:`step_is_small` of ``dx / REUSE_MAX_STEP``): near convergence.
+REUSE_MAX_STEP = 10.0
+
+
+def predicted_decrease(b: np.ndarray, dx: np.ndarray, b_l: np.ndarray, Hll_inv: np.ndarray
+                       ) -> float:
+    """The cost decrease ``-b_full^T [dx, dl]`` that the quadratic model of a linearisation
+    predicts for its Gauss-Newton step, from the reduced system's gradient ``b`` (6K,) and pose
+    step ``dx``, the landmark gradients ``b_l`` (M,3) and inverse blocks ``Hll_inv`` (M,3,3):
+    ``-b^T dx + sum b_l^T H_ll^-1 b_l`` (with ``dl = -H_ll^-1 (b_l + H_lp dx)``; the cost
+    ``E = r^T W r`` and ``H dx = -b`` without factors 1/2)."""
+    return -float(b @ dx) + float(np.einsum("mi,mij,mj->", b_l, Hll_inv, b_l))
+
+
+def _model_agrees(actual: float, predicted: float) -> bool:
+    """Whether a step's actual cost decrease is within :data:`REUSE_GAIN_TOLERANCE` of the
+    decrease ``predicted`` by the linearisation it came from."""
+    return predicted > 0.0 and abs(actual - predicted) <= REUSE_GAIN_TOLERANCE * predicted
 
 
 def scene_scale(inv_dist: np.ndarray) -> float | None:

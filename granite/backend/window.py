@@ -233,13 +233,14 @@ class SlidingWindow:
 
     # ------------------------------------------------------------ operations
     def optimize(self, max_iterations: int | None = None,
-                 snapshot_iteration: int | None = None) -> OptimizeReport:
+                 snapshot_iteration: int | None = None,
+                 reuse_linearizations: bool = True) -> OptimizeReport:
         """Run Gauss-Newton (or LM with ``config.use_lm``) on all window states; see
         :func:`granite.backend.solver.optimize`. Raises ``FloatingPointError`` (window left
         unchanged) if a step produces a non-finite state."""
         problem = self.problem()
         report = optimize_problem(problem, self.cost_terms(), self.config, self._solver_state,
-                                  max_iterations, snapshot_iteration)
+                                  max_iterations, snapshot_iteration, reuse_linearizations)
         if problem.frame_ids:
             self.write_back(problem)
         return report

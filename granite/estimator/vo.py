@@ -220,7 +220,8 @@ class MonocularVO:
         self.keyframe_log.append((kf, self.submap))
         self.selector.reset()
         if est.keyframe_extra_iterations:
-            self._optimize(max_iterations=est.keyframe_extra_iterations)
+            self._optimize(max_iterations=est.keyframe_extra_iterations,
+                           reuse_linearizations=False)
         return True
 
     def _scene_scale_changed(self, frame_id: int) -> bool:
@@ -282,7 +283,8 @@ class MonocularVO:
             self._gn_iterations += win.refine_pose(frame_id, est.outlier_reoptimize_iterations,
                                                    with_landmarks=states == "pose_and_landmarks").iterations
         else:
-            self._optimize(max_iterations=est.outlier_reoptimize_iterations)
+            self._optimize(max_iterations=est.outlier_reoptimize_iterations,
+                           reuse_linearizations=False)
 
     def _optimize(self, **kwargs) -> OptimizeReport:
         """``window.optimize(**kwargs)``, its iterations counted for the frame's diagnostics."""
