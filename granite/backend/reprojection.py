@@ -89,6 +89,23 @@ def _obs_weight(level: int, d: float, inv_var: float, inf_factor: float) -> floa
     return w
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _store_residual(k: int, u: float, v: float, obs_uv: np.ndarray, obs_level: np.ndarray,
+                    d: float, inv_var: float, huber: float, inf_factor: float, r: np.ndarray,
+                    w: np.ndarray) -> float:
+    """Residual ``r[k]`` and robust weight ``w[k]`` of observation ``k`` projected at
+    ``(u, v)``; returns its robust cost ``(2 - h) h w0 |r|^2`` (Huber ``h``)."""
+    r0 = u - obs_uv[k, 0]
+    r1 = v - obs_uv[k, 1]
+    e = math.sqrt(r0 * r0 + r1 * r1)
+    hw = 1.0 if e < huber else huber / e
+    w0 = _obs_weight(obs_level[k], d, inv_var, inf_factor)
+    w[k] = hw * w0
+    r[k, 0] = r0
+    r[k, 1] = r1
+    return (2.0 - hw) * hw * w0 * e * e
+
+
 def _linearize_fused(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, lm_d, obs_lm,
                      obs_tgt, obs_uv, obs_level, inv_var, huber, inf_factor, r, w, J_h, J_l,
                      valid):
@@ -188,15 +205,8 @@ def _linearize_fused_loop(model, kp, poses, poses_lin, same_lin, lm_host, lm_s, 
                     for c in range(3):
                         J_l[k, a, c] = 0.0
                 continue
-            r0 = uv[0, 0] - obs_uv[k, 0]
-            r1 = uv[0, 1] - obs_uv[k, 1]
-            e = math.sqrt(r0 * r0 + r1 * r1)
-            hw = 1.0 if e < huber else huber / e
-            w0 = _obs_weight(obs_level[k], d, inv_var, inf_factor)
-            cost += (2.0 - hw) * hw * w0 * e * e
-            w[k] = hw * w0
-            r[k, 0] = r0
-            r[k, 1] = r1
+            cost += _store_residual(k, uv[0, 0], uv[0, 1], obs_uv, obs_level, d, inv_var, huber,
+                                    inf_factor, r, w)
             for a in range(2):
                 for c in range(6):
                     sh = 0.0
@@ -283,15 +293,8 @@ def _residuals_fused_loop(model, kp, poses, lm_host, lm_s, lm_d, obs_lm, obs_tgt
                 r[k, 0] = 0.0
                 r[k, 1] = 0.0
                 continue
-            r0 = uv[0, 0] - obs_uv[k, 0]
-            r1 = uv[0, 1] - obs_uv[k, 1]
-            e = math.sqrt(r0 * r0 + r1 * r1)
-            hw = 1.0 if e < huber else huber / e
-            w0 = _obs_weight(obs_level[k], d, inv_var, inf_factor)
-            cost += (2.0 - hw) * hw * w0 * e * e
-            w[k] = hw * w0
-            r[k, 0] = r0
-            r[k, 1] = r1
+            cost += _store_residual(k, uv[0, 0], uv[0, 1], obs_uv, obs_level, d, inv_var, huber,
+                                    inf_factor, r, w)
         return cost
 
     return loop
