@@ -166,7 +166,8 @@ def optimize(problem: WindowProblem, cost: WindowCost, config: BackendConfig,
         if not lm_mode:
             t3 = time.perf_counter()
             dx = solve_normal_equations(system.H, system.b)
-            predicted = predicted_decrease(system.b, dx, red.b_l, red.Hll_inv)
+            if reuse_steps:  # what the gain test of a next reused step compares with
+                predicted = predicted_decrease(system.b, dx, red.b_l, red.Hll_inv)
             dl = back_substitute(dx, pk.lm_ptr, pk.lm_host, pk.obs_tgt, lin.w, lin.J_h,
                                  lin.J_l, lin.t_lin, red.Hll_inv, red.b_l)
             t4 = time.perf_counter()
