@@ -450,7 +450,7 @@ def test_probes_correct_predictions_that_are_all_off_by_the_same_image_motion(te
               pyr_b.data, pyr_b.offsets, pyr_b.widths, pyr_b.heights)
     tail = (flow._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow)
     cache_b = new_template_cache(n, cfg.levels, p)
-    fixed, (done, done_points, _) = _probe(
+    fixed, (done, done_points, _), confirmed = _probe(
         images, r0.positions, r0.levels, np.full(n, -1), new_template_cache(0, cfg.levels, p), cache_b,
         tail, guess, pass_order(True, 0, True, above == 0), 32, dict(min_zncc_guess=cfg.guess_min_zncc))
     truth = apply_affine(affine, r0.positions)
@@ -459,3 +459,81 @@ def test_probes_correct_predictions_that_are_all_off_by_the_same_image_motion(te
     assert np.quantile(np.linalg.norm(fixed[inside] + r0.positions[inside] - truth[inside], axis=1), 0.9) < 0.5
     assert 24 <= done.sum() <= 32 and (cache_b[0][done] >= 0).any(axis=1).all()
     np.testing.assert_allclose(done_points[done], truth[done], atol=0.5)
+    assert confirmed
+
+
+def _probed_pair(config, wrong_every=10, outside_every=0):
+    """A 6 px, 1 degree image motion tracked with predictions 0.3 px off, except every
+    ``wrong_every``-th track's, which is 70 px off in a random direction, and every
+    ``outside_every``-th track's (0: none), which is predicted 40 px beyond the nearest image
+    border (as if it had left the view): the probes confirm the predictions unless most are
+    wrong. Returns (masks of the wrong and the outside predictions, frame 0 and frame 1
+    results, the image motion)."""
+    texture = textured_image(H, W, seed=3)
+    affine = similarity(6.0, -4.0, np.radians(1), 1.0, CENTRE)
+    flow = FrameToFrameOpticalFlow(config)
+    r0 = flow.process(0.0, texture)
+    rng = np.random.default_rng(5)
+    predicted = apply_affine(affine, r0.positions) + rng.normal(0, 0.3, r0.positions.shape)
+    index = np.arange(len(r0.ids))
+    wrong = index % wrong_every == 3 % wrong_every
+    angle = rng.uniform(0, 2 * np.pi, wrong.sum())
+    predicted[wrong] += 70 * np.c_[np.cos(angle), np.sin(angle)]
+    outside = (index % outside_every == 4 % outside_every) & ~wrong if outside_every else np.zeros_like(wrong)
+    x, y = r0.positions[outside].T
+    gaps = np.c_[x, W - 1 - x, y, H - 1 - y]  # distances to the left, right, top, bottom border
+    beyond = np.c_[-40.0 + 0 * x, W + 39.0 + 0 * x, -40.0 + 0 * y, H + 39.0 + 0 * y]
+    nearest = gaps.argmin(axis=1)
+    moved = predicted[outside]
+    moved[nearest < 2, 0] = beyond[nearest < 2, nearest[nearest < 2]]
+    moved[nearest >= 2, 1] = beyond[nearest >= 2, nearest[nearest >= 2]]
+    predicted[outside] = moved
+    r1 = flow.process(0.1, warp(texture, affine), predicted=(r0.ids, predicted))
+    return wrong, outside, r0, r1, affine
+
+
+def test_predicted_out_of_view_is_outside_the_pixel_centres():
+    from granite.optical_flow.frame_to_frame import predicted_out_of_view
+
+    p = np.array([[0.0, 0.0], [639.0, 479.0], [-0.01, 5.0], [5.0, 479.01], [639.5, 3.0], [np.nan, np.nan]])
+    np.testing.assert_array_equal(predicted_out_of_view(p, 640, 480), [False, False, True, True, True, False])
+
+
+def test_confirmed_predictions_out_of_view_are_not_retried_blindly():
+    """When the probes confirm the predictions, a lost track predicted outside the image is not
+    tracked again from zero motion or the median flow (``retry_out_of_view = false``, the
+    default): here the predictions lie, the tracks are in view, and ``true`` finds them all. Lost
+    tracks predicted inside the image are retried either way, and the other tracks are the same
+    bit for bit."""
+    runs = {retry: _probed_pair(OpticalFlowConfig(retry_out_of_view=retry), outside_every=10)
+            for retry in (False, True)}
+    wrong, outside, r0, _, affine = runs[False]
+    kept = {retry: np.isin(r0.ids, r1.ids) for retry, (_, _, _, r1, _) in runs.items()}
+    assert wrong.sum() >= 15 and outside.sum() >= 15
+    assert kept[False][outside].mean() < 0.5  # only the guided pass from the coarsest level finds some
+    assert kept[True][outside].mean() >= 0.95
+    assert kept[False][wrong].mean() >= 0.95 and kept[True][wrong].mean() >= 0.95
+    assert kept[False][~outside].mean() >= 0.98
+    r1_off, r1_on = runs[False][3], runs[True][3]
+    same = np.intersect1d(r0.ids[~outside], r1_off.ids)
+    np.testing.assert_array_equal(r1_off.positions[np.isin(r1_off.ids, same)],
+                                  r1_on.positions[np.isin(r1_on.ids, same)])
+    # what the retries found is where the image moved
+    for r1 in (r1_off, r1_on):
+        found = np.isin(r1.ids, r0.ids[wrong | outside])
+        start = r0.positions[np.searchsorted(r0.ids, r1.ids[found])]
+        err = np.linalg.norm(r1.positions[found] - apply_affine(affine, start), axis=1)
+        assert np.median(err) < 0.1 and err.max() < 1.0
+
+
+def test_unconfirmed_predictions_retry_every_lost_track():
+    """Predictions that the probes do not confirm (here each is 70 px off in a random
+    direction or 40 px beyond the image border) leave every retry on: the tracks are those of
+    ``retry_out_of_view = true``, bit for bit, and the zero-motion pass finds them."""
+    runs = [_probed_pair(OpticalFlowConfig(retry_out_of_view=retry), wrong_every=2, outside_every=2)
+            for retry in (False, True)]
+    (wrong, outside, r0, a, _), (_, _, _, b, _) = runs
+    assert (wrong | outside).all() and outside.sum() >= 50
+    assert np.isin(r0.ids, a.ids).mean() >= 0.95
+    np.testing.assert_array_equal(a.ids, b.ids)
+    np.testing.assert_array_equal(a.positions, b.positions)

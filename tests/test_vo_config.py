@@ -44,6 +44,7 @@ def test_reference_file_is_the_defaults_with_our_additions_off():
                        ("optical_flow", "presmooth_sigma"), ("optical_flow", "pattern"),
                        ("optical_flow", "fb_noise_factor"), ("optical_flow", "guided_levels_above"),
                        ("optical_flow", "global_retry_min_lost"), ("optical_flow", "probe_points"),
+                       ("optical_flow", "retry_out_of_view"),
                        ("estimator", "constant_velocity"), ("estimator", "motion_guided_tracking"),
                        ("estimator", "predict_before_estimate"), ("estimator", "tracked_rotation_guess"),
                        ("estimator", "prediction_depth_neighbours"),

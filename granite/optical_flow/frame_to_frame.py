@@ -301,13 +301,17 @@ class FrameToFrameOpticalFlow:
                 tail = (self._pattern, cfg.margin, cfg.iterations, cfg.fb_threshold_sq, cfg.retry_min_flow)
                 order = pass_order(guess is not None, cfg.local_retry_rounds, cfg.guided_levels_above >= 0,
                                    near_after_fine=cfg.guided_levels_above == 0)
-                guesses, preset = guess, None
+                guesses, preset, fallback = guess, None, None
                 if guess is not None and cfg.probe_points > 0:
-                    guesses, preset = _probe(images, points, levels, rows, cache_a, cache_b, tail, guess, order,
-                                             cfg.probe_points, common)
+                    guesses, preset, confirmed = _probe(images, points, levels, rows, cache_a, cache_b, tail,
+                                                        guess, order, cfg.probe_points, common)
+                    if confirmed and not cfg.retry_out_of_view:
+                        fallback = ~predicted_out_of_view(points + guesses, pyramid.widths[0],
+                                                          pyramid.heights[0])
                 result = track_points(
                     *images, points, levels, rows, *cache_a, *cache_b, *tail,
-                    guess=guesses, order=order, executor=executor, share=share, preset=preset, **common,
+                    guess=guesses, order=order, executor=executor, share=share, preset=preset,
+                    fallback=fallback, **common,
                 )
                 lost = ~result[2]
                 if (cfg.global_retry_min_lost > 0.0 and prev_u8 is not None and len(lost) >= _GLOBAL_RETRY_MIN_POINTS
@@ -451,14 +455,24 @@ def _level0_u8(prep: PreparedImage) -> np.ndarray:
     return prep.pyramid.level_uint8(0)
 
 
+def predicted_out_of_view(predicted: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(N,) bool: the predicted level-0 positions (N, 2) outside the image (pixel centres
+    ``0 .. width - 1``, ``0 .. height - 1``): tracks that left the view. A row without a
+    prediction (NaN) is not out of view."""
+    x, y = predicted[:, 0], predicted[:, 1]
+    return (x < 0.0) | (y < 0.0) | (x > width - 1) | (y > height - 1)
+
+
 def _probe(images, points, levels, rows, cache_a, cache_b, tail, guess, order, count, common):
     """Probe tracking (:mod:`granite.optical_flow.probe`): track ``count`` probes first (all
     passes of ``order``, one thread), correct the other tracks' predictions by the homography
-    their results give, and return ``(guesses, preset)`` for :func:`track_points` (the found
-    probes' templates in image B are copied into ``cache_b``)."""
+    their results give, and return ``(guesses, preset, confirmed)`` for :func:`track_points`
+    (the found probes' templates in image B are copied into ``cache_b``); ``confirmed``: the
+    probes agreed on a correction (:func:`~granite.optical_flow.probe.prediction_correction`
+    found one), so the corrected predictions hold for the frame."""
     idx = probe_indices(guess, count)
     if not len(idx):
-        return guess, None
+        return guess, None, False
     sub_cache = new_template_cache(len(idx), cache_b[1].shape[1], cache_b[1].shape[2])
     new_points, theta, status = track_points(
         *images, points[idx], levels[idx], rows[idx], *cache_a, *sub_cache, *tail,
@@ -474,7 +488,7 @@ def _probe(images, points, levels, rows, cache_a, cache_b, tail, guess, order, c
     done_theta[found] = theta[status]
     H = prediction_correction(points[found] + guess[found], new_points[status])
     guesses = guess if H is None else corrected_guess(points, guess, H)
-    return guesses, (done, done_points, done_theta)
+    return guesses, (done, done_points, done_theta), H is not None
 
 
 def _global_retry(result, lost, image_a, image_b, images, points, levels, rows, cache_a, cache_b,

@@ -197,6 +197,8 @@ _CREATION_LEVEL_REACH = 0.5
 _LOCAL_LEVELS_ABOVE = 1
 
 _NO_GUESS = np.zeros((0, 2))
+#: ``fallback`` of :func:`track_points` when every point may be retried by every pass.
+_ALL_FALLBACK = np.zeros(0, dtype=np.bool_)
 _ORDER_UNGUIDED = np.array([PASS_ZERO, PASS_MEDIAN], dtype=np.int64)
 _ORDER_GUIDED = np.array([PASS_GUESS, PASS_ZERO, PASS_MEDIAN], dtype=np.int64)
 
@@ -220,7 +222,7 @@ def track_points(
     pattern, margin, iterations, fb_threshold_sq, retry_min_flow,
     guess=None, order=None, min_zncc_guess=0.9, local_neighbours=8,
     fb_var=None, fb_max_sq=np.inf, executor=None, guided_levels_above=-1, share=None,
-    pattern_coarse=None, preset=None,
+    pattern_coarse=None, preset=None, fallback=None,
 ):
     """Track all points of image A into image B with a forward-backward check.
 
@@ -277,6 +279,9 @@ def track_points(
         preset: optional ``(done (N,) bool, new_points (N, 2), theta (N,))``: the points
             marked ``done`` were tracked already (their templates in B filled by the caller);
             they keep these results, the passes skip them and the median pass counts them.
+        fallback: optional (N,) bool: the points the passes that ignore the predictions (zero
+            motion, median flow) may retry; None: all. The frontend leaves out the tracks
+            whose confirmed prediction lies outside image B (they left the view).
     Returns:
         (new_points (N, 2), theta (N,), status (N,) bool): status is True when the point was
         tracked A -> B and back B -> A to within ``fb_threshold_sq`` (squared distance in
@@ -307,8 +312,14 @@ def track_points(
         st_b, data_b, valid_b, jac_b, aux_b,
         pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess,
     )
+    if fallback is None:
+        fallback = _ALL_FALLBACK
+    else:
+        fallback = np.ascontiguousarray(fallback, dtype=np.bool_)
+        if fallback.shape != (points.shape[0],):
+            raise ValueError(f"fallback must have shape ({points.shape[0]},), got {fallback.shape}")
     tail = (float(min_zncc_guess), int(local_neighbours), fb_var, float(fb_max_sq),
-            int(guided_levels_above))
+            int(guided_levels_above), fallback)
     n = points.shape[0]
     if share is None and executor is not None:
         share = PointShare()
@@ -360,7 +371,7 @@ def _track_points(
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
     st_b, data_b, valid_b, jac_b, aux_b,
     pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
-    local_neighbours, fb_var, fb_max_sq, guided_levels_above,
+    local_neighbours, fb_var, fb_max_sq, guided_levels_above, fallback,
 ):
     """Kernel of :func:`track_points` (``guess`` (N, 2) or (0, 2) for none). Also returns
     the ZNCC of each point's last guided forward match (-2: none)."""
@@ -371,7 +382,7 @@ def _track_points(
         points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
         st_b, data_b, valid_b, jac_b, aux_b,
         pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
-        local_neighbours, fb_var, fb_max_sq, guided_levels_above, 0, n, out, theta, status, tried,
+        local_neighbours, fb_var, fb_max_sq, guided_levels_above, fallback, 0, n, out, theta, status, tried,
         score, local,
     )
     return out, theta, status, score
@@ -412,7 +423,7 @@ def _track_passes_claimed(
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
     st_b, data_b, valid_b, jac_b, aux_b,
     pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
-    local_neighbours, fb_var, fb_max_sq, guided_levels_above, counter, chunk, out, theta, status,
+    local_neighbours, fb_var, fb_max_sq, guided_levels_above, fallback, counter, chunk, out, theta, status,
     tried, score, local,
 ):
     """:func:`_track_passes` of per point independent passes over chunks of ``chunk`` points
@@ -428,7 +439,7 @@ def _track_passes_claimed(
             points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
             st_b, data_b, valid_b, jac_b, aux_b,
             pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
-            local_neighbours, fb_var, fb_max_sq, guided_levels_above, k0, min(k0 + chunk, n), out, theta,
+            local_neighbours, fb_var, fb_max_sq, guided_levels_above, fallback, k0, min(k0 + chunk, n), out, theta,
             status, tried, score, local,
         )
 
@@ -439,7 +450,7 @@ def _track_passes(
     points, levels, rows_a, st_a, data_a, valid_a, jac_a, aux_a,
     st_b, data_b, valid_b, jac_b, aux_b,
     pattern, pattern_c, margin, iterations, fb_threshold_sq, retry_min_flow, guess, order, min_zncc_guess,
-    local_neighbours, fb_var, fb_max_sq, guided_levels_above, k0, k1, out, theta, status, tried,
+    local_neighbours, fb_var, fb_max_sq, guided_levels_above, fallback, k0, k1, out, theta, status, tried,
     score, local,
 ):
     """The passes ``order`` of :func:`_track_points` for the points ``k0 <= k < k1``, on the
@@ -452,6 +463,7 @@ def _track_passes(
     n_levels = offs_a.shape[0]
     p = pattern.shape[0]
     has_guess = guess.shape[0] == n and n > 0
+    has_fallback = fallback.shape[0] == n
     # templates of points without a cached row: point 0 of one-point template arrays
     st_s, data_s, valid_s, jac_s, aux_s = _one_point_templates(n_levels, p)
     radius = pattern_radius(pattern)
@@ -487,8 +499,11 @@ def _track_passes(
             flow_y = np.median(dy)
             if flow_x * flow_x + flow_y * flow_y < retry_min_flow * retry_min_flow:
                 continue
+        blind = mode == PASS_ZERO or mode == PASS_MEDIAN  # passes that ignore the predictions
         for k in range(k0, k1):
             if status[k]:
+                continue
+            if blind and has_fallback and not fallback[k]:
                 continue
             per_point = guided or mode == PASS_LOCAL
             if per_point:
