@@ -63,12 +63,20 @@ class LandmarkTriangulator:
         for f, rows in by_frame.items():
             uv_f = np.array([tracks[f].positions[new_ids[j]] for j in rows])
             inv_dist[rows] = self.inverse_distances(T_w_h, bearings[rows], f, uv_f)
-        for j, seen in zip(keep.tolist(), seen_by):
-            tid = new_ids[j]
+        ids = [new_ids[j] for j in keep.tolist()]
+        for j, tid in zip(keep.tolist(), ids):
             win.add_landmark(tid, host, bearings[j], float(inv_dist[j]))
-            win.add_observation(tid, host, host_tracks.positions[tid], host_tracks.levels[tid])
+        # the observations one frame at a time (host first, then the frames in window order:
+        # each landmark's observations keep that order, which the packing follows)
+        seen_in = {f: [] for f in frames}
+        for tid, seen in zip(ids, seen_by):
             for f in seen:
-                win.add_observation(tid, f, tracks[f].positions[tid], tracks[f].levels[tid])
+                seen_in[f].append(tid)
+        for f, in_f in [(host, ids), *seen_in.items()]:
+            if in_f:
+                ft = tracks[f]
+                win.add_observations(f, in_f, np.array([ft.positions[t] for t in in_f]),
+                                     [ft.levels[t] for t in in_f])
         return len(keep)
 
     def observe_hosted_by(self, host: int, frame_id: int, frame_tracks: FrameTracks) -> None:
