@@ -77,18 +77,21 @@ def measure(path: Path, every: int, config_path: str | None) -> dict:
         return track_points(*args, **kwargs)
 
     ff.track_points, ff.prediction_correction = replayed_track_points, recorded_correction
+    poses = []
     try:
         vo = MonocularVO(camera, config)
         for frame in ds.frames(0, len(ds)):
             state["frame"] = frame.index
             state["t"] = frame.timestamp
             state["confirmed"] = False
-            vo.process(frame.index, frame.timestamp, frame.image)
+            out = vo.process(frame.index, frame.timestamp, frame.image)
+            if out.T_w_c is not None:
+                poses.append(out.T_w_c)
             if frame.image is not None:
                 state["prev"], state["t_prev"] = frame.index, frame.timestamp
     finally:
         ff.track_points, ff.prediction_correction = track_points, correction
-    return {"dataset": path.name, "calls": calls}
+    return {"dataset": path.name, "calls": calls, "poses": np.array(poses)}
 
 
 def _replay(track_points, args, kwargs, state, depth, ds, camera, ground_truth_flow, interpolate_poses):
@@ -114,9 +117,10 @@ def _replay(track_points, args, kwargs, state, depth, ds, camera, ground_truth_f
             best = min(best, time.thread_time() - t)
         prefixes.append((best, result[0], result[2]))
     width, height = int(args[2][0]), int(args[3][0])
-    out_of_view = predicted_out_of_view(points + kwargs["guess"], width, height)
-    return {"order": order, "prefixes": prefixes, "truth": truth, "known": known,
-            "out_of_view": out_of_view, "confirmed": state["confirmed"]}
+    predicted = points + kwargs["guess"]
+    return {"order": order, "prefixes": prefixes, "truth": truth, "known": known, "predicted": predicted,
+            "out_of_view": predicted_out_of_view(predicted, width, height), "size": (width, height),
+            "confirmed": state["confirmed"]}
 
 
 def report(result: dict) -> list[str]:
