@@ -150,6 +150,35 @@ def test_template_jacobian_matches_finite_differences():
     np.testing.assert_allclose(aux[3], jac.astype(np.float64).T @ data, rtol=1e-4, atol=1e-4)
 
 
+def test_patch_zncc_of_the_template_arrays_is_the_correlation_of_the_samples(texture):
+    """``patch_zncc_at`` (the tracker's ZNCC on its template arrays) against the correlation
+    computed with numpy from the samples: inside the image (the vectorised path for a complete
+    template), near the border (the sample-by-sample path) and for a template with invalid
+    samples."""
+    from granite.optical_flow.patch import interp, patch_zncc_at, pattern_radius
+    from granite.optical_flow.patterns import grid_pattern
+
+    img = texture.astype(np.float32)
+    buf = img.ravel()
+    pat = grid_pattern(11, 0.75)
+    st, data, valid, jac, aux = new_template_cache(3, 1, len(pat))
+    centres = [(211.4, 137.7), (5.3, 150.2), (3.1, 4.2)]  # inside, at the border, mostly outside
+    for k, (cx, cy) in enumerate(centres):
+        st[k, 0] = make_template(buf, 0, W, H, cx, cy, pat, 2.0, data[k, 0], valid[k, 0], jac[k, 0],
+                                 aux[k, 0])
+    assert list(st[:, 0]) == [2, 1, 0]
+    radius = pattern_radius(pat)
+    for k, (cx, cy) in enumerate(centres[:2]):
+        tx, ty, theta = cx + 0.4, cy - 0.3, 0.05
+        c, s = np.cos(theta), np.sin(theta)
+        xy = pat @ np.array([[c, -s], [s, c]]).T + (tx, ty)
+        use = valid[k, 0] & (xy[:, 0] >= 2) & (xy[:, 1] >= 2) & (xy[:, 0] <= W - 3) & (xy[:, 1] <= H - 3)
+        v = np.array([interp(buf, 0, W, x, y) for x, y in xy[use]])
+        expected = np.corrcoef(data[k, 0][use].astype(np.float64), v)[0, 1]
+        zn = patch_zncc_at(buf, 0, W, H, tx, ty, theta, pat, radius, 2.0, st[k, 0], data, valid, k, 0)
+        assert zn == pytest.approx(expected, abs=1e-6) and 0.5 < zn < 1.0  # one-pass sums
+
+
 # --------------------------------------------------------------------------- tracking accuracy
 
 

@@ -437,3 +437,38 @@ def patch_zncc(buf, off, w, h, tx, ty, theta, pattern, margin, data, valid) -> f
     if not (vt > 1e-12 and vv > 1e-12):
         return -1.0
     return (stv - st * sv / m) / math.sqrt(vt * vv)
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
+def patch_zncc_at(buf, off, w, h, tx, ty, theta, pattern, radius, margin, state, data, valid, pt, lv) -> float:
+    """:func:`patch_zncc` against the template of point ``pt``, level ``lv`` of the template
+    arrays of many points (``data`` (N, L, P), ``valid`` (N, L, P); ``state`` its
+    :func:`make_template_at` value), read without making views of them. A complete template
+    (``state == 2``) whose warped pattern lies wholly inside the image (``radius`` bounds the
+    samples' distance from the centre) takes a branch-free loop over all samples (the same
+    sums in another order: vectorised)."""
+    n = pattern.shape[0]
+    if not (state == 2 and in_bounds(tx, ty, w, h, margin + radius)):
+        return patch_zncc(buf, off, w, h, tx, ty, theta, pattern, margin, data[pt, lv], valid[pt, lv])
+    c = math.cos(theta)
+    s = math.sin(theta)
+    st = 0.0
+    sv = 0.0
+    stt = 0.0
+    svv = 0.0
+    stv = 0.0
+    for i in range(n):
+        qx = pattern[i, 0]
+        qy = pattern[i, 1]
+        v = interp(buf, off, w, c * qx - s * qy + tx, s * qx + c * qy + ty)
+        t = data[pt, lv, i]
+        st += t
+        sv += v
+        stt += t * t
+        svv += v * v
+        stv += t * v
+    vt = stt - st * st / n
+    vv = svv - sv * sv / n
+    if not (vt > 1e-12 and vv > 1e-12):
+        return -1.0
+    return (stv - st * sv / n) / math.sqrt(vt * vv)

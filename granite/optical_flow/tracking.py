@@ -26,7 +26,7 @@ from granite.optical_flow.patch import (
     lattice_workspace,
     make_template_at,
     patch_increment,
-    patch_zncc,
+    patch_zncc_at,
     pattern_radius,
     unit_lattice_side,
 )
@@ -553,14 +553,14 @@ def _track_passes(
                 # the patch to look like its template.
                 scale = float(1 << lvl)
                 if row >= 0:
-                    zn = patch_zncc(
+                    zn = patch_zncc_at(
                         buf_b, offs_b[lvl], ws_b[lvl], hs_b[lvl], x1 / scale, y1 / scale, t1,
-                        pattern, margin, data_a[row, lvl], valid_a[row, lvl],
+                        pattern, radius, margin, st_a[row, lvl], data_a, valid_a, row, lvl,
                     )
                 else:
-                    zn = patch_zncc(
+                    zn = patch_zncc_at(
                         buf_b, offs_b[lvl], ws_b[lvl], hs_b[lvl], x1 / scale, y1 / scale, t1,
-                        pattern, margin, data_s[0, lvl], valid_s[0, lvl],
+                        pattern, radius, margin, st_s[0, lvl], data_s, valid_s, 0, lvl,
                     )
                 score[k] = zn
                 ok = zn >= min_zncc_guess
