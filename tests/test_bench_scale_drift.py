@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from pathlib import Path
 
@@ -13,17 +12,14 @@ from granite.backend.scale_drift import MIN_KEYFRAMES, scale_drift_task
 from granite.estimator.config import VoConfig
 from granite.estimator.runner import run_vo
 from granite.io import open_dataset
+from _benchmarks import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[1]
 ASSET = ROOT / "assets" / "sequences" / "default"
 
 
 def _bench_module():
-    spec = importlib.util.spec_from_file_location(
-        "bench_scale_drift", ROOT / "benchmarks" / "bench_scale_drift.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("bench_scale_drift")
 
 
 @pytest.mark.slow

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -12,17 +11,14 @@ import numpy as np
 import pytest
 
 from granite.estimator.config import VoConfig
+from _benchmarks import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[1]
 ASSET = ROOT / "assets" / "sequences" / "default"
 
 
 def _bench_module():
-    spec = importlib.util.spec_from_file_location("bench_spread",
-                                                  ROOT / "benchmarks" / "bench_spread.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("bench_spread")
 
 
 def test_steps_alternate_around_the_unperturbed_run():

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -11,17 +10,14 @@ import pytest
 from granite.estimator.config import VoConfig
 from granite.estimator.runner import run_vo
 from granite.io import open_dataset
+from _benchmarks import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[1]
 ASSET = ROOT / "assets" / "sequences" / "aggressive"
 
 
 def _bench_module():
-    spec = importlib.util.spec_from_file_location(
-        "bench_track_passes", ROOT / "benchmarks" / "bench_track_passes.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("bench_track_passes")
 
 
 @pytest.fixture(scope="module")

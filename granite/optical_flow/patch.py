@@ -432,11 +432,7 @@ def patch_zncc(buf, off, w, h, tx, ty, theta, pattern, margin, data, valid) -> f
         stv += t * v
     if 2 * m <= n:
         return -1.0
-    vt = stt - st * st / m
-    vv = svv - sv * sv / m
-    if not (vt > 1e-12 and vv > 1e-12):
-        return -1.0
-    return (stv - st * sv / m) / math.sqrt(vt * vv)
+    return _correlation(m, st, sv, stt, svv, stv)
 
 
 @njit(cache=True, fastmath=_FASTMATH, error_model="numpy")
@@ -467,8 +463,15 @@ def patch_zncc_at(buf, off, w, h, tx, ty, theta, pattern, radius, margin, state,
         stt += t * t
         svv += v * v
         stv += t * v
-    vt = stt - st * st / n
-    vv = svv - sv * sv / n
+    return _correlation(n, st, sv, stt, svv, stv)
+
+
+@njit(cache=True, fastmath=_FASTMATH, error_model="numpy", inline="always")
+def _correlation(m, st, sv, stt, svv, stv):
+    """The correlation coefficient of ``m`` pairs (t, v) from their sums (``st`` = sum t,
+    ``stt`` = sum t*t, ``stv`` = sum t*v, ...); -1 when either side has no variance."""
+    vt = stt - st * st / m
+    vv = svv - sv * sv / m
     if not (vt > 1e-12 and vv > 1e-12):
         return -1.0
-    return (stv - st * sv / n) / math.sqrt(vt * vv)
+    return (stv - st * sv / m) / math.sqrt(vt * vv)
