@@ -19,6 +19,10 @@ Default datasets: the 640x480 bench renders of this checkout
    waited for the frontend (the tracking of the next frame) and for the previous frame's
    Λ_scaledrift (computed on a thread of its own while the estimator works on the next frame).
 
+Before the first dataset, one short run per mode (its first 40 frames, output discarded) fills
+numba's cache, so that no row's peak RSS counts the compilation of the kernels (after a code
+change a cold cache added about 55 MB to the concurrent spiral's peak).
+
 On a loaded machine wall times (frames/s) depend on the other processes: the CPU times are the
 figures to compare, and the load average is printed with each row. Results also go to
 ``--json`` (default ``runs/bench/bench_speed.json``).
@@ -122,13 +126,17 @@ def main() -> int:
               f"{'util':>5s} {'estim. CPU ms':>13s} {'waited ms':>9s} {'Λ wait ms':>9s} {'peak RSS MB':>11s} {'load':>5s}")
     print(header)
     rows = []
+    config = ["--config", str(Path(args.config).resolve())] if args.config else []
+    if datasets:  # fill numba's cache first: the peak RSS of a row must not count compilation
+        for mode in args.modes:
+            subprocess.run([sys.executable, __file__, "--worker", str(datasets[0]), mode, "--repeats", "1",
+                            "--frames", "40", *config], capture_output=True, text=True, cwd=ROOT)
     for ds in datasets:
         for mode in args.modes:
             cmd = [sys.executable, __file__, "--worker", str(ds), mode, "--repeats", str(args.repeats)]
             if args.frames:
                 cmd += ["--frames", str(args.frames)]
-            if args.config:
-                cmd += ["--config", str(Path(args.config).resolve())]
+            cmd += config
             proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
             if proc.returncode != 0:
                 print(f"{ds.name}: {mode} failed:\n{proc.stderr[-2000:]}")
