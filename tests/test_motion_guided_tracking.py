@@ -526,6 +526,20 @@ def test_confirmed_predictions_out_of_view_are_not_retried_blindly():
         assert np.median(err) < 0.1 and err.max() < 1.0
 
 
+def test_a_fallback_mask_of_the_wrong_length_is_a_clear_error(texture):
+    from granite.optical_flow.patterns import make_pattern
+    from granite.optical_flow.pyramid import build_pyramid
+    from granite.optical_flow.tracking import new_template_cache, track_points
+
+    pyr = build_pyramid(texture, 3)
+    points, levels = np.array([[100.0, 100.0], [200.0, 150.0]]), np.zeros(2, dtype=np.int64)
+    images = (pyr.data, pyr.offsets, pyr.widths, pyr.heights) * 2
+    with pytest.raises(ValueError, match="fallback must have shape"):
+        track_points(*images, points, levels, np.full(2, -1), *new_template_cache(0, 3, 121),
+                     *new_template_cache(2, 3, 121), make_pattern("grid11"), 2.0, 6, 0.03, 2.0,
+                     fallback=np.ones(3, dtype=bool))
+
+
 def test_unconfirmed_predictions_retry_every_lost_track():
     """Predictions that the probes do not confirm (here each is 70 px off in a random
     direction or 40 px beyond the image border) leave every retry on: the tracks are those of
