@@ -17,7 +17,7 @@ Default datasets: the 640x480 bench renders of this checkout
    CPU utilisation = CPU time / wall time (1.0 = one core busy), and in the concurrent mode the
    CPU time of the caller's thread (the estimator; ``time.thread_time``) and the wall time it
    waited for the frontend (the tracking of the next frame) and for the previous frame's
-   Λ_scaledrift (computed on a thread of its own while the estimator works on the next frame).
+   Λ_scaledrift (computed on the tracker's thread while the estimator works on the next frame).
 
 Before the first dataset, one short run per mode (its first 40 frames, output discarded) fills
 numba's cache, so that no row's peak RSS counts the compilation of the kernels (after a code

@@ -14,19 +14,22 @@ The concurrent pipeline (``concurrent=True``) has three helper threads besides t
   <granite.optical_flow.FrameToFrameOpticalFlow.prepare>`, OpenCV and GIL-free numba kernels)
   while the estimator works on frame k;
 * the **tracker** tracks the points into frame k+1 and detects new corners
-  (:class:`~granite.optical_flow.frame_to_frame.FlowJob`);
+  (:class:`~granite.optical_flow.frame_to_frame.FlowJob`), and computes frame k's
+  Λ_scaledrift (:func:`granite.backend.scale_drift_task`: the window is copied on the
+  caller's thread at the point of the sequential computation, the linearisation, landmark
+  elimination and eigen-solver run on the copy with GIL-free kernels) between the tracking of
+  frame k+1 and that of frame k+2, while the caller goes on with frame k+1. Frame k's output
+  is yielded once frame k+1 is estimated (or at the end, or before a skipped frame): the
+  outputs lag the input by one frame; a run stopped early (Ctrl-C) gets the frame held back
+  from :meth:`VoPipeline.drain`. Nothing the estimator reads comes from Λ, so the results are
+  those of the sequential loop; the frame's warnings are recorded and issued with its output.
+  Λ runs on the tracker's thread, not on a thread of its own: with a fourth busy thread on two
+  cores the operating system's fair share took CPU time from the caller's thread, which is
+  the critical path, and a paired measurement on the 640x480 spiral ran 8-9 % slower
+  (docs/architecture.md, twenty-third session);
 * the **helper**, which joins the points' guided / zero-motion passes (the kernel is per point
   independent there; the median and local passes follow over all points) when the tracking
-  was started while the caller waits for it;
-* the **scale-drift** thread computes frame k's Λ_scaledrift
-  (:func:`granite.backend.scale_drift_task`: the window is copied on the caller's thread at
-  the point of the sequential computation, the linearisation, landmark elimination and
-  eigen-solver run on the copy with GIL-free kernels) while the caller goes on with frame
-  k+1. Frame k's output is yielded once frame k+1 is estimated (or at the end, or before a
-  skipped frame): the outputs lag the input by one frame; a run stopped early (Ctrl-C) gets
-  the frame held back from :meth:`VoPipeline.drain`. Nothing the estimator reads comes
-  from Λ, so the results are those of the sequential loop; the frame's warnings are recorded
-  and issued with its output.
+  was started while the caller waits for it.
 
 Work sharing: those per-point passes run in chunks of points that any thread claims through
 an atomic counter inside the GIL-free kernel (:mod:`granite.optical_flow.work_share`). The
@@ -149,8 +152,7 @@ class VoPipeline:
                                   name="granite-reader", daemon=True)
         tracker = ThreadPoolExecutor(1, thread_name_prefix="granite-tracker")
         helper = ThreadPoolExecutor(1, thread_name_prefix="granite-helper")
-        indicator = ThreadPoolExecutor(1, thread_name_prefix="granite-scale-drift")
-        vo.scale_drift_executor = indicator
+        vo.scale_drift_executor = tracker  # Λ_scaledrift between two trackings (module docstring)
         # the helper joins the tracking of a frame begun early only while the caller waits for
         # it; when the whole estimator step runs meanwhile, the caller joins at its end
         early_helper = helper if waits else None
@@ -257,7 +259,6 @@ class VoPipeline:
                     pass
             tracker.shutdown(wait=True)
             helper.shutdown(wait=True)
-            indicator.shutdown(wait=True)
             vo.scale_drift_executor = None
             try:  # unblock the reader
                 while True:
