@@ -488,3 +488,46 @@ def test_the_null_direction_names_the_reason():
     Q, _ = np.linalg.qr(np.column_stack([e, rng.normal(size=(9, 8))]))
     *_, reason = indicator_from_information((Q * lam) @ Q.T, t)
     assert reason == NO_SCALE_LINK
+
+
+def test_chain_kernel_equals_the_dense_schur_complement_and_hands_singular_blocks_back():
+    """The GIL-free kernel of ``relative_translation_information``: on a well-posed window the
+    dense Schur complement ``H_kk - H_km H_mm^-1 H_mk`` of ``J^T H J`` (numpy inverse); with a
+    marginalised direction without information it reports failure, and the public function
+    falls back to the generalised inverse (finite, and the same as eliminating that direction
+    by hand)."""
+    from granite.backend.scale_drift import _chain_translation_information
+
+    n = 4
+    P = _random_poses(n, seed=7)
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(8 * n, 6 * n))
+    H = A.T @ A  # positive definite
+    J = chain_jacobian(P)
+    Hr = J.T @ H @ J
+    keep = np.array([6 * j + a for j in range(1, n) for a in range(3)])
+    marg = np.setdiff1d(np.arange(6 * n), keep)
+    expected = Hr[np.ix_(keep, keep)] - Hr[np.ix_(keep, marg)] @ np.linalg.inv(Hr[np.ix_(marg, marg)]) @ Hr[np.ix_(marg, keep)]
+    ok, H_t = _chain_translation_information(H, P)
+    assert ok
+    assert np.allclose(H_t, expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+    assert np.array_equal(H_t, H_t.T)
+    assert np.allclose(relative_translation_information(H, P), expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+
+    # no information on any rotation about x (keyframes at one place, unrotated: the chain
+    # Jacobian is exact 0/1 blocks): marginalised directions without information, held with a
+    # zero step by the generalised inverse
+    P0 = np.tile(np.eye(4), (n, 1, 1))
+    H0 = H.copy()
+    rot_x = np.arange(3, 6 * n, 6)
+    H0[rot_x, :] = 0.0
+    H0[:, rot_x] = 0.0
+    ok, _ = _chain_translation_information(H0, P0)
+    assert not ok
+    J0 = chain_jacobian(P0)
+    Hr0 = J0.T @ H0 @ J0
+    marg1 = np.setdiff1d(marg, rot_x)
+    by_hand = Hr0[np.ix_(keep, keep)] - Hr0[np.ix_(keep, marg1)] @ np.linalg.inv(Hr0[np.ix_(marg1, marg1)]) @ Hr0[np.ix_(marg1, keep)]
+    got = relative_translation_information(H0, P0)
+    assert np.all(np.isfinite(got))
+    assert np.allclose(got, by_hand, rtol=1e-6, atol=1e-7 * np.abs(by_hand).max())

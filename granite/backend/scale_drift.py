@@ -173,11 +173,83 @@ def chain_jacobian_inverse(poses: np.ndarray) -> np.ndarray:
     return A
 
 
+#: The Cholesky path of :func:`_chain_translation_information` needs every squared pivot of the
+#: Jacobi-scaled block to marginalise above this (as ``hessian.information_schur_complement``).
+_CHOLESKY_MIN_PIVOT2 = 1e-12
+
+
+@numba.njit(cache=True, nogil=True)
+def _chain_translation_information(H: np.ndarray, poses: np.ndarray) -> tuple[bool, np.ndarray]:
+    """:func:`relative_translation_information` in one GIL-free kernel: ``J^T H J``
+    symmetrised, then the Schur complement by a Jacobi-scaled Cholesky factorisation of the
+    block to marginalise (the oldest pose, then each relative rotation; the kept relative
+    translations in chain order). Returns ``(ok, H_t)``; ``ok`` is False when that block is
+    not safely positive definite (a squared pivot at most :data:`_CHOLESKY_MIN_PIVOT2`, a
+    non-positive diagonal), and the caller takes the generalised inverse instead."""
+    n = poses.shape[0]
+    J = chain_jacobian(poses)
+    Hr = np.ascontiguousarray(J.T) @ (np.ascontiguousarray(H) @ J)
+    N = 6 * n
+    m = 6 + 3 * (n - 1)
+    k = N - m
+    order = np.empty(N, dtype=np.int64)
+    for a in range(6):
+        order[a] = a
+    for j in range(1, n):
+        for a in range(3):
+            order[6 + 3 * (j - 1) + a] = 6 * j + 3 + a  # rotations: marginalised
+            order[m + 3 * (j - 1) + a] = 6 * j + a  # translations: kept
+    P = np.empty((N, N))
+    for a in range(N):
+        for b in range(N):
+            P[a, b] = 0.5 * (Hr[order[a], order[b]] + Hr[order[b], order[a]])
+    sc = np.empty(m)
+    for a in range(m):
+        if not P[a, a] > 0.0:
+            return False, np.zeros((k, k))
+        sc[a] = 1.0 / np.sqrt(P[a, a])
+    L = np.zeros((m, m))
+    for j in range(m):
+        s = P[j, j] * sc[j] * sc[j]
+        for c in range(j):
+            s -= L[j, c] * L[j, c]
+        if not s > _CHOLESKY_MIN_PIVOT2:
+            return False, np.zeros((k, k))
+        L[j, j] = np.sqrt(s)
+        for i in range(j + 1, m):
+            t = P[i, j] * sc[i] * sc[j]
+            for c in range(j):
+                t -= L[i, c] * L[j, c]
+            L[i, j] = t / L[j, j]
+    X = np.empty((m, k))  # L^-1 (diag(sc) P_mk)
+    for col in range(k):
+        for i in range(m):
+            t = sc[i] * P[i, m + col]
+            for c in range(i):
+                t -= L[i, c] * X[c, col]
+            X[i, col] = t / L[i, i]
+    out = np.empty((k, k))
+    for a in range(k):
+        for b in range(a, k):
+            t = 0.0
+            for i in range(m):
+                t += X[i, a] * X[i, b]
+            out[a, b] = P[m + a, m + b] - t
+    for a in range(k):
+        for b in range(a):
+            out[a, b] = out[b, a]
+    return True, out
+
+
 def relative_translation_information(H: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """``H_t`` (3(n-1) square): the absolute information ``H`` (6n square, decoupled twists at
     ``poses``) moved onto the chain (``J^T H J``), then the oldest keyframe's absolute pose and
-    every relative rotation marginalised (Schur complement, generalised inverse for
-    unconstrained directions)."""
+    every relative rotation marginalised (Schur complement; a GIL-free Cholesky kernel, the
+    generalised inverse for unconstrained or nearly unconstrained directions)."""
+    ok, H_t = _chain_translation_information(np.asarray(H, dtype=np.float64),
+                                             np.ascontiguousarray(poses, dtype=np.float64))
+    if ok:
+        return H_t
     J = chain_jacobian(poses)
     H_rel = J.T @ H @ J
     n = len(poses)
