@@ -25,8 +25,8 @@ The concurrent pipeline (``concurrent=True``) has three helper threads besides t
   those of the sequential loop; the frame's warnings are recorded and issued with its output.
   Λ runs on the tracker's thread, not on a thread of its own: with a fourth busy thread on two
   cores the operating system's fair share took CPU time from the caller's thread, which is
-  the critical path, and a paired measurement on the 640x480 spiral ran 8-9 % slower
-  (docs/architecture.md, twenty-third session);
+  the critical path: in paired measurements on the 640x480 spiral the fourth thread made it
+  up to 12 % slower (median wall ratios 0.88-1.01, docs/architecture.md, twenty-third session);
 * the **helper**, which joins the points' guided / zero-motion passes (the kernel is per point
   independent there; the median and local passes follow over all points) when the tracking
   was started while the caller waits for it.
