@@ -106,7 +106,7 @@ def run_side(args, side: str) -> dict:
     if args.frames:
         cmd += ["--frames", str(args.frames)]
     if config:
-        cmd += ["--config-a", str(Path(config).resolve())]
+        cmd += ["--worker-config", str(Path(config).resolve())]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tree, env=env)
     if proc.returncode != 0:
@@ -148,9 +148,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tree-b", type=Path, default=ROOT, help="source tree of side B (default: this checkout)")
     ap.add_argument("--json", type=Path, default=None, help="write every run and the summary here")
     ap.add_argument("--worker", nargs=2, metavar=("DATASET", "MODE"), help=argparse.SUPPRESS)
+    ap.add_argument("--worker-config", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        print(json.dumps(worker(args.worker[0], args.worker[1], args.frames, args.config_a)))
+        print(json.dumps(worker(args.worker[0], args.worker[1], args.frames, args.worker_config)))
         return 0
     if args.dataset is None:
         ap.error("the dataset is required")
