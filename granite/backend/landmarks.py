@@ -134,9 +134,10 @@ class LandmarkDatabase:
     ids). Every landmark's host must be a frame of the window; the window enforces it.
 
     Observations live in :class:`~granite.backend.observation_store.ObservationSlots`;
-    ``landmark -> {frame -> slot}`` and ``frame -> {landmarks}`` index them. Within a landmark,
-    slot order is the order in which its observations were added (a replaced observation
-    keeps its place), which is the order :meth:`pack` uses. Dead slots are compacted away when
+    ``frame -> {landmark -> slot}`` indexes them (a frame's observations are added and
+    dropped together, one dictionary each; a landmark's are found through the window's few
+    frames). Within a landmark, slot order is the order in which its observations were added
+    (a replaced observation keeps its place), which is the order :meth:`pack` uses. Dead slots are compacted away when
     they outnumber the live ones and exceed ``compact_threshold`` (memory only: packing gives
     the same arrays either way). The landmark states (bearing, inverse distance, host) are rows
     of arrays (:class:`Landmark` objects are views of them), so packing, unpacking and the
@@ -147,8 +148,7 @@ class LandmarkDatabase:
     def __init__(self, compact_threshold: int = 4096) -> None:
         self.compact_threshold = int(compact_threshold)
         self._landmarks: dict[int, Landmark] = {}
-        self._obs: dict[int, dict[int, int]] = {}  # landmark -> {frame -> slot}
-        self._obs_in_frame: dict[int, set[int]] = {}
+        self._obs_in_frame: dict[int, dict[int, int]] = {}  # frame -> {landmark -> slot}
         self._hosted: dict[int, set[int]] = {}
         self._slots = ObservationSlots()
         self._version = 0  # bumped on every change of landmarks / observations (not states)
@@ -240,7 +240,6 @@ class LandmarkDatabase:
                 table[lid] = row
             else:
                 self._row_of = None
-        self._obs[landmark_id] = {}
         self._hosted.setdefault(int(host_frame_id), set()).add(landmark_id)
         self._version += 1
 
@@ -253,9 +252,10 @@ class LandmarkDatabase:
 
     def remove_landmark(self, landmark_id: int) -> None:
         lm = self._landmarks.pop(landmark_id)
-        for frame_id, slot in self._obs.pop(landmark_id).items():
-            self._obs_in_frame[frame_id].discard(landmark_id)
-            self._slots.kill(slot)
+        for in_frame in self._obs_in_frame.values():
+            slot = in_frame.pop(landmark_id, None)
+            if slot is not None:
+                self._slots.kill(slot)
         self._hosted[lm.host_frame_id].discard(landmark_id)
         if self._row_of is not None:
             self._row_of[landmark_id] = -1
@@ -312,8 +312,7 @@ class LandmarkDatabase:
     def add_observation(self, landmark_id: int, frame_id: int, uv: np.ndarray,
                         level: int = 0) -> None:
         """Add (or replace) the observation of a landmark in a frame."""
-        obs = self._obs.get(landmark_id)
-        if obs is None:
+        if landmark_id not in self._landmarks:
             raise KeyError(f"observation of unknown landmark {landmark_id}")
         u, v = _uv_pair(uv)
         if not (math.isfinite(u) and math.isfinite(v)):
@@ -321,13 +320,12 @@ class LandmarkDatabase:
                              "is not finite")
         frame_id = int(frame_id)
         level = int(level)
-        slot = obs.get(frame_id)
+        in_frame = self._obs_in_frame.get(frame_id)
+        if in_frame is None:
+            in_frame = self._obs_in_frame[frame_id] = {}
+        slot = in_frame.get(landmark_id)
         if slot is None:
-            obs[frame_id] = self._slots.append(landmark_id, frame_id, u, v, level)
-            in_frame = self._obs_in_frame.get(frame_id)
-            if in_frame is None:
-                in_frame = self._obs_in_frame[frame_id] = set()
-            in_frame.add(landmark_id)
+            in_frame[landmark_id] = self._slots.append(landmark_id, frame_id, u, v, level)
         else:
             self._slots.set(slot, u, v, level)
         self._version += 1
@@ -346,16 +344,16 @@ class LandmarkDatabase:
             np.asarray(levels, dtype=np.int64).reshape(-1)
         if uvs.shape[0] != n or lv.shape[0] != n:
             raise ValueError("add_observations: landmark_ids, uvs and levels differ in length")
-        obs_dicts = self._obs
+        lms = self._landmarks
         ids_list = ids.tolist()
         if self._row_of is not None:
             known = np.flatnonzero(self._rows(ids) >= 0).tolist()
         else:
-            known = [k for k, i in enumerate(ids_list) if i in obs_dicts]
+            known = [k for k, i in enumerate(ids_list) if i in lms]
         if len(known) != n:
             if not skip_unknown:
                 raise KeyError("observation of unknown landmark "
-                               f"{next(i for i in ids_list if i not in obs_dicts)}")
+                               f"{next(i for i in ids_list if i not in lms)}")
             ids_list = [ids_list[k] for k in known]
             ids, uvs, lv = ids[known], uvs[known], lv[known]
             n = len(known)
@@ -366,32 +364,28 @@ class LandmarkDatabase:
         self._slots.flush()
         base = self._slots.next_slot
         in_frame = self._obs_in_frame.get(fid)
-        if not in_frame and len(set(ids_list)) == n:
-            # the usual case, a new frame: no landmark has an observation in it yet and no id
-            # repeats, so every observation gets the next slot
-            for d, slot in zip(map(obs_dicts.__getitem__, ids_list), range(base, base + n)):
-                d[fid] = slot
-            if in_frame is None:
-                in_frame = self._obs_in_frame[fid] = set()
-            in_frame.update(ids_list)
-            self._slots.extend(ids, fid, uvs, lv)
-            self._version += 1
-            return n
+        if not in_frame:
+            # the usual case, a new frame: no landmark has an observation in it yet; when no
+            # id repeats either, every observation gets the next slot
+            fresh = dict(zip(ids_list, range(base, base + n)))
+            if len(fresh) == n:
+                self._obs_in_frame[fid] = fresh
+                self._slots.extend(ids, fid, uvs, lv)
+                self._version += 1
+                return n
+        if in_frame is None:
+            in_frame = self._obs_in_frame[fid] = {}
         nxt = base
         new_rows: list[int] = []
         replaced: list[tuple[int, int]] = []
         for k, lm_id in enumerate(ids_list):
-            d = obs_dicts[lm_id]
-            slot = d.get(fid)
+            slot = in_frame.get(lm_id)
             if slot is None:
-                d[fid] = nxt
+                in_frame[lm_id] = nxt
                 nxt += 1
                 new_rows.append(k)
             else:
                 replaced.append((slot, k))
-        if in_frame is None:
-            in_frame = self._obs_in_frame[fid] = set()
-        in_frame.update(ids_list)
         if nxt > base:
             sel = slice(None) if nxt - base == n else np.asarray(new_rows, dtype=np.int64)
             self._slots.extend(ids[sel], fid, uvs[sel], lv[sel])
@@ -401,22 +395,24 @@ class LandmarkDatabase:
         return n
 
     def remove_observation(self, landmark_id: int, frame_id: int) -> None:
-        slot = self._obs[landmark_id].pop(frame_id)
-        self._obs_in_frame[frame_id].discard(landmark_id)
+        slot = self._obs_in_frame[frame_id].pop(landmark_id)
         self._slots.kill(slot)
         self._version += 1
 
     def observations(self, landmark_id: int) -> dict[int, Observation]:
-        """Observations of a landmark: frame id -> observation (a copy of the mapping)."""
-        return {f: self._slots.get(s) for f, s in self._obs[landmark_id].items()}
+        """Observations of a landmark: frame id -> observation, in the order they were added."""
+        if landmark_id not in self._landmarks:
+            raise KeyError(landmark_id)
+        slots = sorted((d[landmark_id], f) for f, d in self._obs_in_frame.items() if landmark_id in d)
+        return {f: self._slots.get(s) for s, f in slots}
 
     def observation(self, landmark_id: int, frame_id: int) -> Observation:
         """The observation of a landmark in a frame (``KeyError`` if there is none)."""
-        return self._slots.get(self._obs[landmark_id][frame_id])
+        return self._slots.get(self._obs_in_frame[frame_id][landmark_id])
 
     def has_observation(self, landmark_id: int, frame_id: int) -> bool:
-        obs = self._obs.get(landmark_id)
-        return obs is not None and frame_id in obs
+        in_frame = self._obs_in_frame.get(frame_id)
+        return in_frame is not None and landmark_id in in_frame
 
     def observed_in(self, frame_id: int) -> set[int]:
         """Ids of the landmarks observed in a frame."""
@@ -428,8 +424,9 @@ class LandmarkDatabase:
         map's scale to the frame. A landmark seen in two frames only fixes their relative pose
         up to the length of the baseline."""
         kfs = set(keyframes) - {frame_id}
+        in_kfs = [d for f, d in self._obs_in_frame.items() if f in kfs]
         ids = [lm for lm in self._obs_in_frame.get(frame_id, ())
-               if sum(1 for f in self._obs[lm] if f in kfs) >= 2]
+               if sum(1 for d in in_kfs if lm in d) >= 2]
         if not ids:
             return 0
         return int(np.count_nonzero(self.inverse_distances(np.asarray(ids, dtype=np.int64)) > 0.0))
@@ -437,9 +434,9 @@ class LandmarkDatabase:
     def remove_frame(self, frame_id: int) -> list[int]:
         """Drop all observations made in a frame and all landmarks it hosts; returns the ids
         of the removed landmarks."""
-        ids = self._obs_in_frame.pop(frame_id, None)
-        if ids:
-            self._slots.kill_many([self._obs[lm_id].pop(frame_id) for lm_id in ids])
+        in_frame = self._obs_in_frame.pop(frame_id, None)
+        if in_frame:
+            self._slots.kill_many(list(in_frame.values()))
             self._version += 1
         removed = sorted(self._hosted.get(frame_id, ()))
         for lm_id in removed:
@@ -469,9 +466,9 @@ class LandmarkDatabase:
         dead = self._slots.num_dead
         if dead > self.compact_threshold and dead > self._slots.num_alive:
             new_slot = self._slots.compact()
-            for d in self._obs.values():
-                for f, s in d.items():
-                    d[f] = new_slot[s]
+            for d in self._obs_in_frame.values():
+                for lm_id, s in d.items():
+                    d[lm_id] = new_slot[s]
         ids = None if landmark_ids is None else list(landmark_ids)
         key = (self._version, tuple(frame_index.items()), None if ids is None else tuple(ids),
                None if target_filter is None else frozenset(target_filter))

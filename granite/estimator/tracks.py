@@ -2,36 +2,51 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from granite.optical_flow import OpticalFlowResult
 
 
-@dataclass
 class FrameTracks:
     """Tracks of one frame by track id: pixel position ``(u, v)`` and the pyramid level the
-    feature was created on. Track ids are the landmark ids of the backend. ``ids`` (n,) and
-    ``uv`` (n, 2) hold the same tracks as arrays, in the frontend's order (made from the
-    dictionaries when not given)."""
+    feature was created on. Track ids are the landmark ids of the backend. ``ids`` (n,),
+    ``uv`` (n, 2) and ``level_values`` (n,) hold the tracks as arrays, in the frontend's
+    order; ``positions`` and ``levels`` are the same as dictionaries by id, made on first use
+    (most frames are never looked up by id). ``FrameTracks(positions, levels)`` builds the
+    arrays from the dictionaries."""
 
-    positions: dict[int, np.ndarray]
-    levels: dict[int, int]
-    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    _bearings: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
+    __slots__ = ("ids", "uv", "level_values", "_positions", "_levels", "_bearings")
 
-    def __post_init__(self) -> None:
-        if len(self.ids) != len(self.positions):  # built from the dictionaries alone
-            self.ids = np.fromiter(self.positions, dtype=np.int64, count=len(self.positions))
-            self.uv = np.array(list(self.positions.values()), dtype=np.float64).reshape(-1, 2)
+    def __init__(self, positions: dict[int, np.ndarray] | None, levels: dict[int, int] | None,
+                 ids: np.ndarray | None = None, uv: np.ndarray | None = None,
+                 level_values: np.ndarray | None = None) -> None:
+        self._positions = positions
+        self._levels = levels
+        self._bearings: tuple[np.ndarray, np.ndarray] | None = None
+        if ids is None:  # built from the dictionaries alone
+            assert positions is not None and levels is not None
+            self.ids = np.fromiter(positions, dtype=np.int64, count=len(positions))
+            self.uv = np.array(list(positions.values()), dtype=np.float64).reshape(-1, 2)
+            self.level_values = np.fromiter((levels[i] for i in positions), dtype=np.int64,
+                                            count=len(positions))
+        else:
+            self.ids, self.uv, self.level_values = ids, uv, level_values
+
+    @property
+    def positions(self) -> dict[int, np.ndarray]:
+        if self._positions is None:
+            self._positions = dict(zip(self.ids.tolist(), self.uv))
+        return self._positions
+
+    @property
+    def levels(self) -> dict[int, int]:
+        if self._levels is None:
+            self._levels = dict(zip(self.ids.tolist(), self.level_values.tolist()))
+        return self._levels
 
     @classmethod
     def from_result(cls, result: OpticalFlowResult) -> FrameTracks:
-        ids = result.ids.tolist()
-        return cls(dict(zip(ids, result.positions)), dict(zip(ids, result.levels.tolist())),
-                   result.ids.copy(), result.positions.copy())
+        return cls(None, None, result.ids.copy(), result.positions.copy(), result.levels.copy())
 
     def bearings(self, unproject) -> tuple[np.ndarray, np.ndarray]:
         """Unit bearings (n, 3) and validity (n,) of ``uv`` by ``unproject`` (pixels (n, 2) ->
