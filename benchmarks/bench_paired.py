@@ -16,10 +16,11 @@ Why: on a shared VM the same code runs up to 20 % slower or faster from one minu
 (docs/architecture.md), more than most single changes; two single runs compare nothing. What is
 printed: per round each side's wall and CPU ms per frame, then per side the medians and the
 median over rounds of the ratio B / A of wall and of CPU time (below 1: B is faster), and in how
-many rounds B was faster. The poses checksum (``float.hex`` of the sum of the absolute pose
-entries) of every run is compared: a variant that should change no result (a scheduling or
-kernel change) must give the same checksum on both sides, and every run of a side must give the
-same one (determinism); a mismatch is printed as a warning. ``--json`` keeps all runs.
+many rounds B was faster; with each run the hypervisor's steal share of the CPU time during it
+(``benchmarks/_host.py``; the cause of the host's drift on this VM). The poses checksum
+(``float.hex`` of the sum of the absolute pose entries) of every run is compared: a variant that
+should change no result (a scheduling or kernel change) must give the same checksum on both
+sides, and every run of a side must give the same one (determinism); a mismatch is printed as a warning. ``--json`` keeps all runs.
 Bad input (a dataset that cannot be opened, a tree without ``granite/``, an invalid
 configuration, ``--rounds`` < 1) is a one-line error with exit status 2.
 """
@@ -34,6 +35,9 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _host  # noqa: E402  (benchmarks/_host.py)
 
 ROOT = Path(__file__).resolve().parents[1]
 WARMUP_FRAMES = 30
@@ -62,12 +66,14 @@ def worker(dataset_path: str, mode: str, frames: int | None, config_path: str | 
         return [out.T_w_c for _, out in VoPipeline(vo, concurrent).run(items)]
 
     run(loaded[:WARMUP_FRAMES])
+    ticks = _host.cpu_ticks()
     t0, c0 = time.perf_counter(), time.process_time()
     poses = run(loaded)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     return {"granite": str(Path(granite.__file__).resolve().parent), "frames": n,
             "wall_ms": 1e3 * wall / n, "cpu_ms": 1e3 * cpu / n,
-            "checksum": float(np.sum(np.abs(np.array(poses)))).hex()}
+            "checksum": float(np.sum(np.abs(np.array(poses)))).hex(),
+            **_host.shares(ticks, _host.cpu_ticks())}
 
 
 def _check_inputs(args) -> str | None:
@@ -114,6 +120,11 @@ def run_side(args, side: str) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def _steal(run: dict) -> str:
+    """`` steal X %`` of a run (the hypervisor's share of the CPU time, :mod:`_host`), or ''."""
+    return f" steal {run['steal_pct']:4.1f} %" if "steal_pct" in run else ""
+
+
 def summarise(runs: list[dict]) -> dict:
     """Medians per side, paired ratios B / A, wins of B, checksum agreement."""
     a = [r["a"] for r in runs]
@@ -129,9 +140,18 @@ def summarise(runs: list[dict]) -> dict:
         "wall_ratio_median": statistics.median(wall),
         "cpu_ratio_median": statistics.median(cpu),
         "b_faster_rounds": sum(1 for r in wall if r < 1.0),
+        **_steal_summary([r for r in a + b if "steal_pct" in r]),
         "a_checksums": sorted({x["checksum"] for x in a}),
         "b_checksums": sorted({y["checksum"] for y in b}),
     }
+
+
+def _steal_summary(runs: list[dict]) -> dict:
+    steal = [r["steal_pct"] for r in runs]
+    if not steal:
+        return {"steal_pct_median": None, "steal_pct_min": None, "steal_pct_max": None}
+    return {"steal_pct_median": statistics.median(steal), "steal_pct_min": min(steal),
+            "steal_pct_max": max(steal)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -169,15 +189,18 @@ def main(argv: list[str] | None = None) -> int:
             result = {side: run_side(args, side) for side in order}
             runs.append(result)
             a, b = result["a"], result["b"]
-            print(f"round {k + 1:2d} ({order.upper()}): A {a['wall_ms']:6.2f} ms wall {a['cpu_ms']:6.2f} ms CPU | "
-                  f"B {b['wall_ms']:6.2f} wall {b['cpu_ms']:6.2f} CPU | B/A wall {b['wall_ms'] / a['wall_ms']:.3f}",
-                  flush=True)
+            print(f"round {k + 1:2d} ({order.upper()}): A {a['wall_ms']:6.2f} ms wall {a['cpu_ms']:6.2f} ms CPU"
+                  f"{_steal(a)} | B {b['wall_ms']:6.2f} wall {b['cpu_ms']:6.2f} CPU{_steal(b)} | "
+                  f"B/A wall {b['wall_ms'] / a['wall_ms']:.3f}", flush=True)
     except RuntimeError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     s = summarise(runs)
     print(f"medians: A {s['a_wall_ms_median']:.2f} ms wall, {s['a_cpu_ms_median']:.2f} ms CPU per frame; "
           f"B {s['b_wall_ms_median']:.2f} / {s['b_cpu_ms_median']:.2f}")
+    if s["steal_pct_median"] is not None:
+        print(f"hypervisor steal during the timed runs: median {s['steal_pct_median']:.1f} %, "
+              f"range {s['steal_pct_min']:.1f}-{s['steal_pct_max']:.1f} % of the CPU time")
     print(f"paired B / A, median over rounds: wall {s['wall_ratio_median']:.3f}, CPU {s['cpu_ratio_median']:.3f}; "
           f"B faster in {s['b_faster_rounds']} of {s['rounds']} rounds")
     for side in "ab":

@@ -24,7 +24,10 @@ numba's cache, so that no row's peak RSS counts the compilation of the kernels (
 change a cold cache added about 55 MB to the concurrent spiral's peak).
 
 On a loaded machine wall times (frames/s) depend on the other processes: the CPU times are the
-figures to compare, and the load average is printed with each row. Results also go to
+figures to compare, and the load average is printed with each row. On a virtual machine they
+also depend on the hypervisor: the last column is the steal share of all CPU time during the
+best run (``benchmarks/_host.py``; 8-28 % on this project's VM in one session, which slows the
+frame rate by about as much). Results also go to
 ``--json`` (default ``runs/bench/bench_speed.json``).
 """
 
@@ -40,6 +43,9 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as `granite run`
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _host  # noqa: E402  (benchmarks/_host.py)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -83,10 +89,12 @@ def worker(dataset_path: str, mode: str, repeats: int, frames: int | None,
         vo = MonocularVO(dataset.calibration.camera(), config)
         vo.export_landmarks = True  # as run_vo
         pipe = VoPipeline(vo, concurrent)
+        ticks = _host.cpu_ticks()
         t0, c0, m0 = time.perf_counter(), time.process_time(), time.thread_time()
         poses = [out.T_w_c for _, out in pipe.run(loaded)]
         wall, cpu, main = time.perf_counter() - t0, time.process_time() - c0, time.thread_time() - m0
-        row = {"wall_ms": 1e3 * wall / n, "cpu_ms": 1e3 * cpu / n, "utilisation": cpu / wall,
+        host = _host.shares(ticks, _host.cpu_ticks())
+        row = {**host, "wall_ms": 1e3 * wall / n, "cpu_ms": 1e3 * cpu / n, "utilisation": cpu / wall,
                "fps": n / wall, "caller_cpu_ms": 1e3 * (pipe.caller_cpu if concurrent else main) / n,
                "waited_tracker_ms": 1e3 * pipe.waited_tracker / n,
                "waited_scale_drift_ms": 1e3 * pipe.waited_scale_drift / n,
@@ -123,7 +131,7 @@ def main() -> int:
     datasets = args.datasets or default_datasets()
     print(f"{os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.1f}")
     header = (f"{'dataset':34s} {'mode':4s} {'frames':>6s} {'fps':>6s} {'wall ms':>8s} {'CPU ms':>7s} "
-              f"{'util':>5s} {'estim. CPU ms':>13s} {'waited ms':>9s} {'Λ wait ms':>9s} {'peak RSS MB':>11s} {'load':>5s}")
+              f"{'util':>5s} {'estim. CPU ms':>13s} {'waited ms':>9s} {'Λ wait ms':>9s} {'peak RSS MB':>11s} {'load':>5s} {'steal %':>7s}")
     print(header)
     rows = []
     config = ["--config", str(Path(args.config).resolve())] if args.config else []
@@ -147,7 +155,8 @@ def main() -> int:
                       if mode == "conc" else f"{'':9s} {'':9s}")
             print(f"{Path(row['dataset']).name + ' ' + row['size']:34s} {mode:4s} {row['frames']:6d} "
                   f"{row['fps']:6.1f} {row['wall_ms']:8.2f} {row['cpu_ms']:7.2f} {row['utilisation']:5.2f} "
-                  f"{row['caller_cpu_ms']:13.2f} {waited} {row['peak_rss_mb']:11.0f} {row['load']:5.1f}",
+                  f"{row['caller_cpu_ms']:13.2f} {waited} {row['peak_rss_mb']:11.0f} {row['load']:5.1f} "
+                  f"{row.get('steal_pct', float('nan')):7.1f}",
                   flush=True)
         pair = [r for r in rows if r["dataset"] == str(ds)]
         if len(pair) == 2 and pair[0]["poses_checksum"] != pair[1]["poses_checksum"]:
