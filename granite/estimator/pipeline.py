@@ -50,6 +50,14 @@ computation gets the same inputs as in the sequential mode, so trajectories, dia
 tracks are bit-identical (``tests/test_pipeline.py``); ``concurrent=False`` (``granite run
 --sequential``) is the plain loop over :meth:`MonocularVO.process`, kept for debugging.
 
+OpenCV's own thread pool is switched off while the pipeline runs (``cv2.setNumThreads(1)``,
+restored afterwards; :func:`opencv_single_threaded`): the pipeline's threads already keep both
+cores busy, and OpenCV's worker, woken by each pyramid, blur or corner detection call,
+spins on ``sched_yield`` after its share of the call (about 1 ms of CPU per spiral frame, most of it
+system time). Paired in one process on the 640x480 spiral, 8 rounds: wall time ratio 0.951
+(6 of 8 rounds faster), CPU time 0.925 (docs/architecture.md, twenty-fourth session). Results
+do not depend on it (OpenCV's parallel loops split rows; ``tests/test_pipeline.py``).
+
 Warnings: the caller (``runner.run_vo``) records the warnings raised while it waits for each
 frame's output (the pipeline records each frame's own and issues them with its output). The
 frontend work started early for frame k+1 on the caller's thread (its prediction and guesses)
@@ -60,12 +68,15 @@ numpy's floating-point warnings off.
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import threading
 import time
 import warnings
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+
+import cv2
 
 from granite.estimator.vo import FrameOutput, MonocularVO
 
@@ -144,6 +155,10 @@ class VoPipeline:
                 continue
 
     def _run_concurrent(self, frames: Iterable) -> Iterator[tuple[object, FrameOutput]]:
+        with opencv_single_threaded():
+            yield from self._run_concurrent_threads(frames)
+
+    def _run_concurrent_threads(self, frames: Iterable) -> Iterator[tuple[object, FrameOutput]]:
         vo, flow = self.vo, self.vo.flow
         waits = vo.next_tracking_waits_for_estimate
         items: queue.Queue = queue.Queue(maxsize=self.prefetch)
@@ -266,3 +281,15 @@ class VoPipeline:
             except queue.Empty:
                 pass
             reader.join(timeout=5.0)
+
+
+@contextlib.contextmanager
+def opencv_single_threaded():
+    """OpenCV's parallel loops run on the calling thread inside the block (its worker pool
+    off); the previous thread count is restored on exit."""
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(previous)
