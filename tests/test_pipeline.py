@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from granite.estimator.config import VoConfig
-from granite.estimator.pipeline import VoPipeline
+from granite.estimator.pipeline import VoPipeline, opencv_single_threaded
 from granite.estimator.runner import run_vo
 from granite.estimator.vo import MonocularVO
 from granite.io import open_dataset
@@ -114,6 +114,38 @@ def test_pipeline_handles_missing_and_rejected_frames_like_the_sequential_loop()
     assert all(np.array_equal(a[1], b[1]) for a, b in zip(seq, conc))
     assert [s for _, _, s, _ in seq].count("skipped") == 4
     assert any("blank image" in m for _, _, _, w in conc for m in w)
+
+
+def test_opencv_runs_single_threaded_inside_the_pipeline_only():
+    """OpenCV's worker pool is off while a concurrent run is in progress (seen from the
+    consumer of the frames), also while two runs overlap, and the thread count from before
+    is back afterwards, also after an interrupted run."""
+    import cv2
+
+    dataset = open_dataset(SEQUENCES / "aggressive")
+    frames = list(dataset.frames(0, 6))
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(3)  # a user's setting, whatever the machine
+    try:
+        seen = []
+        for _ in VoPipeline(MonocularVO(dataset.calibration.camera(), VoConfig()), True).run(frames):
+            seen.append(cv2.getNumThreads())
+        assert seen == [1] * len(frames) and cv2.getNumThreads() == 3
+        for _ in VoPipeline(MonocularVO(dataset.calibration.camera(), VoConfig()), False).run(frames[:2]):
+            assert cv2.getNumThreads() == 3  # the sequential loop leaves OpenCV alone
+        first, second = opencv_single_threaded(), opencv_single_threaded()
+        first.__enter__()
+        second.__enter__()  # a second pipeline starts while the first runs ...
+        first.__exit__(None, None, None)  # ... and outlives it
+        assert cv2.getNumThreads() == 1
+        second.__exit__(None, None, None)
+        assert cv2.getNumThreads() == 3
+        run = VoPipeline(MonocularVO(dataset.calibration.camera(), VoConfig()), True).run(frames)
+        next(run)
+        run.close()  # the consumer stops early
+        assert cv2.getNumThreads() == 3
+    finally:
+        cv2.setNumThreads(before)
 
 
 def test_the_split_passes_are_the_per_point_ones():

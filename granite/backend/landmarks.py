@@ -137,9 +137,9 @@ class LandmarkDatabase:
     ``frame -> {landmark -> slot}`` indexes them (a frame's observations are added and
     dropped together, one dictionary each; a landmark's are found through the window's few
     frames). Within a landmark, slot order is the order in which its observations were added
-    (a replaced observation keeps its place), which is the order :meth:`pack` uses. Dead slots are compacted away when
-    they outnumber the live ones and exceed ``compact_threshold`` (memory only: packing gives
-    the same arrays either way). The landmark states (bearing, inverse distance, host) are rows
+    (a replaced observation keeps its place), which is the order :meth:`pack` uses. Dead
+    slots are compacted away when they outnumber the live ones and exceed
+    ``compact_threshold`` (memory only: packing gives the same arrays either way). The landmark states (bearing, inverse distance, host) are rows
     of arrays (:class:`Landmark` objects are views of them), so packing, unpacking and the
     per-id queries are vectorised gathers; ids that are small non-negative integers (track
     ids) are found through a table indexed by id, other ids through the dictionary.

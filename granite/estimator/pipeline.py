@@ -53,8 +53,8 @@ tracks are bit-identical (``tests/test_pipeline.py``); ``concurrent=False`` (``g
 OpenCV's own thread pool is switched off while the pipeline runs (``cv2.setNumThreads(1)``,
 restored afterwards; :func:`opencv_single_threaded`): the pipeline's threads already keep both
 cores busy, and OpenCV's worker, woken by each pyramid, blur or corner detection call,
-spins on ``sched_yield`` after its share of the call (about 1 ms of CPU per spiral frame, most of it
-system time). Paired in one process on the 640x480 spiral, 8 rounds: wall time ratio 0.951
+spins on ``sched_yield`` after its share of the call (about 1 ms of CPU per spiral frame,
+most of it system time). Paired in one process on the 640x480 spiral, 8 rounds: wall time ratio 0.951
 (6 of 8 rounds faster), CPU time 0.925 (docs/architecture.md, twenty-fourth session). Results
 do not depend on it (OpenCV's parallel loops split rows; ``tests/test_pipeline.py``).
 
@@ -283,13 +283,26 @@ class VoPipeline:
             reader.join(timeout=5.0)
 
 
+_opencv_lock = threading.Lock()
+_opencv_users = 0  # blocks of opencv_single_threaded() open now, in any thread
+_opencv_previous = 0  # OpenCV's thread count before the first of them
+
+
 @contextlib.contextmanager
 def opencv_single_threaded():
     """OpenCV's parallel loops run on the calling thread inside the block (its worker pool
-    off); the previous thread count is restored on exit."""
-    previous = cv2.getNumThreads()
-    cv2.setNumThreads(1)
+    off). The setting is process-wide: overlapping blocks (two pipelines in two threads)
+    share it, and the thread count from before the first is restored when the last ends."""
+    global _opencv_users, _opencv_previous
+    with _opencv_lock:
+        if _opencv_users == 0:
+            _opencv_previous = cv2.getNumThreads()
+            cv2.setNumThreads(1)
+        _opencv_users += 1
     try:
         yield
     finally:
-        cv2.setNumThreads(previous)
+        with _opencv_lock:
+            _opencv_users -= 1
+            if _opencv_users == 0:
+                cv2.setNumThreads(_opencv_previous)
