@@ -2,10 +2,11 @@
 
 On a virtual machine the hypervisor may run other guests on the physical cores behind our
 virtual CPUs: that time is *steal* (the ``steal`` column of ``/proc/stat``: the virtual CPU
-was ready to run but the host did not run it). On this project's 2-core VM steal was 8-28 % of
+was ready to run but the host did not run it). On this project's 2-core VM steal was 0-40 % of
 the CPU time during concurrent VO runs minutes apart (twenty-fourth session, docs/architecture.md),
-which is what made the same code run 20-40 % slower or faster from one run to the next. The
-benchmarks print it beside every timing so that a reader can tell a slow host from slow code.
+part of why the same code ran 20-40 % slower or faster from one run to the next (other slow
+minutes showed system time instead, no steal). The benchmarks print it beside every timing so
+that a reader can tell a slow host from slow code.
 """
 
 from __future__ import annotations

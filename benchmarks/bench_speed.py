@@ -26,8 +26,8 @@ change a cold cache added about 55 MB to the concurrent spiral's peak).
 On a loaded machine wall times (frames/s) depend on the other processes: the CPU times are the
 figures to compare, and the load average is printed with each row. On a virtual machine they
 also depend on the hypervisor: the last column is the steal share of all CPU time during the
-best run (``benchmarks/_host.py``; 8-28 % on this project's VM in one session, which slows the
-frame rate by about as much). Results also go to
+best run (``benchmarks/_host.py``; 0-40 % on this project's VM between runs minutes apart in one
+session, which slows the frame rate by about as much). Results also go to
 ``--json`` (default ``runs/bench/bench_speed.json``).
 """
 
