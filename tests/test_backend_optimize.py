@@ -12,6 +12,7 @@ from granite.backend import BackendConfig, pose_delta
 from granite.backend.solver import scene_scale, step_is_small
 from granite.backend.synthetic import build_window, make_hover_scene, make_scene
 from granite.camera import make_camera
+from granite.geometry import so3_exp
 
 NO_HUBER = BackendConfig(huber_threshold=1e6)  # pure least squares: chi-square statistics hold
 
@@ -148,6 +149,94 @@ def test_outliers_are_downweighted_and_removed():
     win.optimize(max_iterations=5)
     _, rot = _pose_errors(win, scene)
     assert rot.max() < 0.2
+
+
+def _outliers_of_a_fresh_pack(win):
+    """What ``remove_outliers`` would find on a window packed anew (no reuse): the
+    ``(landmark, frame)`` pairs beyond the threshold, from the residuals of ``problem()``."""
+    from granite.backend.reprojection import reprojection_residuals
+
+    problem = win.problem()
+    pk = problem.packed
+    res, valid = reprojection_residuals(win.camera, pk, problem.poses)
+    bad = ~valid | ~(np.linalg.norm(res, axis=1) <= win.config.outlier_threshold)
+    return {(int(pk.landmark_ids[pk.obs_lm[k]]), problem.frame_ids[int(pk.obs_tgt[k])])
+            for k in np.flatnonzero(bad)}
+
+
+@pytest.mark.parametrize("change", ["none", "inverse_distance", "pose", "prior", "observation"])
+def test_outlier_removal_after_an_optimisation_sees_every_later_change(change):
+    """``remove_outliers`` reuses the last optimisation's packed problem while nothing changed
+    since: a landmark state, a pose, the prior (its linearisation points) or an observation
+    changed in between must show in what it removes."""
+    from granite.backend import MargPrior
+
+    scene = make_scene(num_frames=6, num_points=150, sigma=0.5, seed=8)
+    win = build_window(scene, pose_noise=(0.01, 0.005), bearing_noise=0.002,
+                       inv_dist_noise=0.2, seed=9)
+    _scale_fix(win, scene)
+    win.optimize(max_iterations=8)
+    last = scene.frame_ids[-1]
+    observed = sorted(win.landmarks.observed_in(last) - win.landmarks.hosted_by(last))
+    if change == "inverse_distance":  # far too close: its observations outside the image / far off
+        for lm in observed[:10]:
+            win.set_inverse_distance(lm, 4.0 * win.landmarks.landmark(lm).inv_dist + 1.0)
+    elif change == "pose":  # the newest pose turned by 3 degrees: all its observations off
+        T = win.pose(last)
+        T[:3, :3] = T[:3, :3] @ so3_exp(np.radians([0.0, 3.0, 0.0]))
+        win.set_pose(last, T)
+    elif change == "prior":  # the prior's linearisation point of the first frame moved
+        first = scene.frame_ids[0]
+        T = win.pose(first)
+        T[:3, 3] += 0.5
+        win.prior = MargPrior.gauge(first, T, 1e8)
+    elif change == "observation":
+        lm = observed[0]
+        win.remove_observation(lm, last)
+        win.add_observation(lm, last, win.landmarks.observation(lm, scene.frame_ids[0]).uv
+                            + 40.0 if win.landmarks.has_observation(lm, scene.frame_ids[0])
+                            else np.array([5.0, 5.0]), 0)
+    # the problem the window would reuse is the one it would pack now (the prior's
+    # linearisation points are its pose Jacobians' points)
+    reused, fresh = win._current_problem(), win.problem()
+    assert reused.frame_ids == fresh.frame_ids
+    for a, b in [(reused.poses, fresh.poses), (reused.poses_lin, fresh.poses_lin),
+                 (reused.in_prior, fresh.in_prior)] + [
+            (getattr(reused.packed, f.name), getattr(fresh.packed, f.name))
+            for f in dataclasses.fields(fresh.packed)]:
+        np.testing.assert_array_equal(a, b)
+    expected = _outliers_of_a_fresh_pack(win)
+    if change in ("inverse_distance", "pose", "observation"):
+        assert expected  # the change does make outliers
+    assert set(win.remove_outliers()) == expected
+
+
+def test_normal_equations_are_solved_as_by_a_dense_solver():
+    from granite.backend.schur import solve_normal_equations
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(40, 24))
+    H = A.T @ A + np.diag(rng.uniform(0.1, 1e4, 24))  # badly scaled, positive definite
+    b = rng.normal(size=24)
+    np.testing.assert_allclose(solve_normal_equations(H, b), -np.linalg.solve(H, b),
+                               rtol=1e-9, atol=1e-12)
+    # a state without information (zero row and column) gets a zero step, the rest as before
+    Z = np.zeros((30, 30))
+    keep = np.r_[0:12, 18:30]
+    Z[np.ix_(keep, keep)] = H
+    bz = np.zeros(30)
+    bz[keep] = b
+    dx = solve_normal_equations(Z, bz)
+    assert np.all(dx[12:18] == 0.0)
+    np.testing.assert_allclose(dx[keep], -np.linalg.solve(H, b), rtol=1e-9, atol=1e-12)
+    # singular but positive semi-definite (a gauge freedom): the regularised step still
+    # solves the system where it is consistent (b in the range of H)
+    B = rng.normal(size=(10, 24))
+    S = B.T @ B  # rank 10
+    bs = S @ rng.normal(size=24)
+    dx = solve_normal_equations(S, bs)
+    assert np.all(np.isfinite(dx))
+    np.testing.assert_allclose(S @ dx, -bs, rtol=1e-5, atol=1e-6 * np.abs(bs).max())
 
 
 def test_inverse_distance_stays_in_bounds():

@@ -152,6 +152,7 @@ class LandmarkDatabase:
         self._hosted: dict[int, set[int]] = {}
         self._slots = ObservationSlots()
         self._version = 0  # bumped on every change of landmarks / observations (not states)
+        self._state_version = 0  # bumped by every state write of the database's own methods
         self._pack_cache: tuple | None = None
         # landmark states: one row per landmark (rows of removed ones are dead until the
         # store is compacted), and the row of each id (-1: none) while ids fit a table
@@ -249,6 +250,7 @@ class LandmarkDatabase:
             raise ValueError(f"landmark {landmark_id}: inverse distance must be >= 0, "
                              f"got {inv_dist}")
         self._landmarks[landmark_id].inv_dist = inv_dist
+        self._state_version += 1
 
     def remove_landmark(self, landmark_id: int) -> None:
         lm = self._landmarks.pop(landmark_id)
@@ -445,6 +447,12 @@ class LandmarkDatabase:
         return removed
 
     @property
+    def version(self) -> tuple[int, int]:
+        """Changes whenever a landmark, an observation or a state changes through the
+        database's methods (not through in-place edits of a :class:`Landmark`'s ``s`` view)."""
+        return self._version, self._state_version
+
+    @property
     def num_observations(self) -> int:
         return self._slots.num_alive
 
@@ -507,3 +515,4 @@ class LandmarkDatabase:
         st = self._store
         st.s[rows] = packed.lm_s
         st.d[rows] = packed.lm_d
+        self._state_version += 1

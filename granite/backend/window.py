@@ -57,6 +57,7 @@ class SlidingWindow:
         self.camera = camera
         self.config = config if config is not None else BackendConfig()
         self._workspaces = WorkspacePool()
+        self._pose_version = 0  # bumped on every change of frames, poses or the prior
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -67,6 +68,24 @@ class SlidingWindow:
         self.prior = MargPrior.empty()
         self.scale_fix: ScaleFix | None = None
         self._solver_state = SolverState()
+        #: (the problem of the last :meth:`optimize`, the version it is valid for)
+        self._optimized: tuple[WindowProblem, tuple] | None = None
+
+    @property
+    def prior(self) -> MargPrior:
+        """The marginalisation prior (its linearisation points are the pose Jacobians' points
+        of its states)."""
+        return self._prior
+
+    @prior.setter
+    def prior(self, value: MargPrior) -> None:
+        self._prior = value
+        self._pose_version += 1
+
+    def _version(self) -> tuple:
+        """Changes whenever a frame, pose, the prior, a landmark, an observation or a landmark
+        state changes through the window's or its database's methods."""
+        return self._pose_version, id(self.landmarks), self.landmarks.version
 
     @property
     def frame_ids(self) -> list[int]:
@@ -94,6 +113,7 @@ class SlidingWindow:
         """Overwrite a pose estimate (e.g. after map initialisation). The linearisation point
         of a state in the prior is unaffected."""
         self._frames[frame_id].T_w_c = _check_pose(T_w_c)
+        self._pose_version += 1
 
     def add_frame(self, frame_id: int, T_w_c: np.ndarray, is_keyframe: bool = False) -> None:
         """Add a frame state with an initial pose guess. The first frame of an empty window
@@ -105,6 +125,7 @@ class SlidingWindow:
         if not self._frames and not self.prior.frame_ids and self.config.initial_pose_weight > 0:
             self.prior = MargPrior.gauge(frame_id, T, self.config.initial_pose_weight)
         self._frames[frame_id] = FrameState(T, bool(is_keyframe))
+        self._pose_version += 1
 
     def make_keyframe(self, frame_id: int) -> None:
         """Promote a frame of the window to keyframe (paper Sec. IV-D takes the previous
@@ -116,6 +137,7 @@ class SlidingWindow:
         hosts go; returns the ids of the removed landmarks."""
         removed = self.landmarks.remove_frame(frame_id)
         del self._frames[frame_id]
+        self._pose_version += 1
         return removed
 
     # -------------------------------------------------------------- landmarks
@@ -225,6 +247,7 @@ class SlidingWindow:
         """Copy a problem's poses and landmark states into the window."""
         for i, f in enumerate(problem.frame_ids):
             self._frames[f].T_w_c = problem.poses[i].copy()
+        self._pose_version += 1
         self.landmarks.unpack_states(problem.packed)
 
     def cost_terms(self) -> WindowCost:
@@ -243,7 +266,15 @@ class SlidingWindow:
                                   max_iterations, snapshot_iteration, reuse_linearizations)
         if problem.frame_ids:
             self.write_back(problem)
+            self._optimized = (problem, self._version())
         return report
+
+    def _current_problem(self) -> WindowProblem:
+        """``problem()``: the last :meth:`optimize`'s own problem while nothing changed since
+        (its states are the window's, its structure the same pack), else a new one."""
+        if self._optimized is not None and self._optimized[1] == self._version():
+            return self._optimized[0]
+        return self.problem()
 
     def pose_refinable_alone(self, frame_id: int) -> bool:
         """Whether :meth:`refine_pose` can optimise the frame's pose alone: it is in the window,
@@ -275,7 +306,7 @@ class SlidingWindow:
         ``config.outlier_threshold``) or that do not project; landmarks left without any
         observation are removed as well. Returns the removed ``(landmark_id, frame_id)``."""
         thr = self.config.outlier_threshold if threshold is None else float(threshold)
-        problem = self.problem()
+        problem = self._current_problem()
         pk = problem.packed
         if pk.num_observations == 0:
             return []
