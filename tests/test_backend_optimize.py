@@ -191,11 +191,10 @@ def test_outlier_removal_after_an_optimisation_sees_every_later_change(change):
         T[:3, 3] += 0.5
         win.prior = MargPrior.gauge(first, T, 1e8)
     elif change == "observation":
-        lm = observed[0]
+        lm = observed[0]  # re-observed 40 px off where it was seen
+        uv = win.landmarks.observation(lm, last).uv + 40.0
         win.remove_observation(lm, last)
-        win.add_observation(lm, last, win.landmarks.observation(lm, scene.frame_ids[0]).uv
-                            + 40.0 if win.landmarks.has_observation(lm, scene.frame_ids[0])
-                            else np.array([5.0, 5.0]), 0)
+        win.add_observation(lm, last, uv, 0)
     # the problem the window would reuse is the one it would pack now (the prior's
     # linearisation points are its pose Jacobians' points)
     reused, fresh = win._current_problem(), win.problem()
