@@ -3,6 +3,8 @@ settings: 4 samples, no denoiser, direct sun + analytic sky light).
 
     python benchmarks/bench_render.py [--frames 8] [--samples N] [--corners] [--save DIR]
                                       [--plain-terrain] [--reference-samples 64]
+                                      [--denoise] [--adaptive-threshold T
+                                      [--adaptive-min-samples N]]
 
 Prints the wall time per frame (after one warm-up frame that builds the BVH), the process CPU
 time per frame divided by the render threads (what the time would be on an idle machine),
@@ -58,6 +60,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=8, help="timed frames (spread over the flight)")
     ap.add_argument("--samples", type=int, default=None, help="override render.samples")
+    ap.add_argument("--denoise", action="store_true",
+                    help="OpenImageDenoise on the render (CPU, albedo and normal passes)")
+    ap.add_argument("--adaptive-threshold", type=float, default=None, metavar="T",
+                    help="Cycles adaptive sampling with noise threshold T (0 = off)")
+    ap.add_argument("--adaptive-min-samples", type=int, default=None, metavar="N",
+                    help="with --adaptive-threshold: samples every pixel gets (default: "
+                         "min(samples, 4))")
     ap.add_argument("--corners", action="store_true", help="FAST corners per altitude")
     ap.add_argument("--save", type=Path, default=None, help="write the frames as PNG here")
     ap.add_argument("--plain-terrain", action="store_true",
@@ -90,6 +99,20 @@ def main() -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    render_changes = {}
+    if args.denoise:
+        render_changes["denoise"] = True
+    if args.adaptive_threshold is not None:
+        if not 0.0 <= args.adaptive_threshold <= 1.0:
+            print("error: --adaptive-threshold must be in [0, 1]", file=sys.stderr)
+            return 2
+        render_changes["adaptive_threshold"] = args.adaptive_threshold
+    if args.adaptive_min_samples is not None:
+        if not 1 <= args.adaptive_min_samples <= s.render.samples:
+            print("error: --adaptive-min-samples must be in 1..samples", file=sys.stderr)
+            return 2
+        render_changes["adaptive_min_samples"] = args.adaptive_min_samples
+    s = dataclasses.replace(s, render=dataclasses.replace(s.render, **render_changes))
     if args.plain_terrain:
         s = dataclasses.replace(s, terrain=dataclasses.replace(
             s.terrain, ripple_coverage=0.0, rock_model="power_law", rock_min_diameter=0.1))
@@ -206,7 +229,7 @@ def _reference(renderer, s, plan, renders: dict, samples: int, capture, save,
     from simulation.sensor import LUMA_709
 
     ref_cfg = dataclasses.replace(s.render, samples=samples, adaptive_threshold=0.0,
-                                  denoise=False)
+                                  adaptive_min_samples=0, denoise=False)
     key = hashlib.sha1(repr(dataclasses.replace(s, render=ref_cfg)).encode()).hexdigest()[:12]
     if cache:
         cache.mkdir(parents=True, exist_ok=True)

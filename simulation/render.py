@@ -57,7 +57,8 @@ def configure_cycles(scene, render_cfg, width: int, height: int, seed: int) -> N
     cyc.use_adaptive_sampling = render_cfg.adaptive_threshold > 0
     if cyc.use_adaptive_sampling:
         cyc.adaptive_threshold = render_cfg.adaptive_threshold
-        cyc.adaptive_min_samples = min(render_cfg.samples, 4)
+        cyc.adaptive_min_samples = (render_cfg.adaptive_min_samples
+                                    or min(render_cfg.samples, 4))
     cyc.use_denoising = bool(render_cfg.denoise)
     if cyc.use_denoising:
         cyc.denoiser = "OPENIMAGEDENOISE"

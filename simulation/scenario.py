@@ -51,6 +51,8 @@ class RenderConfig:
     samples: int = _f(4, 1, 4096)
     denoise: bool = _f(False, doc="OpenImageDenoise (CPU); rarely needed: the lighting is noise-free")
     adaptive_threshold: float = _f(0.0, 0.0, 1.0, doc="0 disables adaptive sampling")
+    adaptive_min_samples: int = _f(0, 0, 4096, doc="with adaptive sampling, the samples every "
+                                   "pixel gets; 0 = min(samples, 4)")
     max_bounces: int = _f(0, 0, 16, doc="0 = direct sun + analytic sky light (noise-free)")
     exposure: float = _f(0.0, -10.0, 10.0, doc="stops; used by sensor.exposure_mode = 'fixed'")
     motion_blur: bool = _f(False, doc="Cycles motion blur (exact, twice the render time); "

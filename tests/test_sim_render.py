@@ -229,3 +229,22 @@ def test_reconfigure_reaches_the_persistent_cycles_session():
     np.testing.assert_array_equal(sixteen, fresh16)
     np.testing.assert_array_equal(depth, fresh_depth)
     np.testing.assert_array_equal(one_again, one)
+
+
+@pytest.mark.parametrize("samples, min_samples, expected", [(8, 2, 2), (8, 0, 4), (2, 0, 2)])
+def test_adaptive_sampling_settings_reach_cycles(samples, min_samples, expected):
+    """``[render] adaptive_threshold`` and ``adaptive_min_samples`` (0 = min(samples, 4)) are
+    what Cycles is configured with; a threshold of 0 switches adaptive sampling off."""
+    from simulation.render import configure_cycles
+
+    camera = {"width": 64, "height": 48, "fx": 48.0, "fy": 48.0, "cx": 31.5, "cy": 23.5}
+    s = _scenario(camera, render={"samples": samples, "adaptive_threshold": 0.05,
+                                  "adaptive_min_samples": min_samples})
+    scene = bpy.context.scene
+    configure_cycles(scene, s.render, 64, 48, 5)
+    assert scene.cycles.use_adaptive_sampling
+    assert scene.cycles.adaptive_threshold == pytest.approx(0.05)
+    assert scene.cycles.adaptive_min_samples == expected
+    off = _scenario(camera, render={"samples": samples})
+    configure_cycles(scene, off.render, 64, 48, 5)
+    assert not scene.cycles.use_adaptive_sampling
