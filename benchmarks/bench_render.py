@@ -167,6 +167,8 @@ def main() -> int:
         if args.reference_samples:
             quality = _reference(renderer, s, plan, renders, args.reference_samples, capture,
                                  args.save, args.reference_cache)
+    import _host  # benchmarks/_host.py
+
     v = software_versions()
     print(f"Blender {v['blender']}, {s.render.threads} threads, {s.render.samples} samples"
           f" (adaptive threshold {s.render.adaptive_threshold:g}, denoiser "
@@ -174,7 +176,7 @@ def main() -> int:
           f"{t_build:.1f} s; load average {load:.2f}")
     print(f"seconds per 640x480 frame: mean {np.mean(walls):.2f}, median {np.median(walls):.2f}"
           f" (wall); CPU / threads: mean {np.mean(cpus):.2f}; sensor model "
-          f"{np.mean(sensor_ms):.0f} ms (grayscale)")
+          f"{np.mean(sensor_ms):.0f} ms (grayscale); {_host.probe_text(_host.speed_probe())}")
     if quality:
         for line in quality:
             print(line)

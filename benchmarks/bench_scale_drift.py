@@ -362,13 +362,17 @@ def main(argv=None) -> int:
             tau = kendalltau(*zip(*pairs)).statistic if len(pairs) >= 2 else float("nan")
             print(f"Kendall τ (median Λ vs RMS drift rate, {len(pairs)} runs), {label}: {tau:.3f}")
     if args.cost:
+        import _host  # benchmarks/_host.py
+
+        probe = _host.speed_probe()
         c = cost(args.cost)
+        c.update(probe)
         print(f"\nCPU time on {args.cost}: {c['frames']} frames with >= 3 keyframes (at most "
               f"{c['max_keyframes']}): cold (first call, as in the VO) mean {c['cold_ms_mean']:.2f} ms; "
               f"total per frame mean {c['total_ms']['mean']:.2f} ms, median "
               f"{c['total_ms']['median']:.2f}, p95 {c['total_ms']['p95']:.2f}, max {c['total_ms']['max']:.2f}; "
               f"fast path: keyframe system {c['keyframe_system_ms_mean']:.2f} ms, chain + Schur + eigen "
-              f"{c['chain_ms_mean']:.2f} ms (max {c['chain_ms_max']:.2f})")
+              f"{c['chain_ms_mean']:.2f} ms (max {c['chain_ms_max']:.2f}); {_host.probe_text(probe)}")
         results.append({"cost": c})
     (args.out / "bench_scale_drift.json").write_text(json.dumps(results, indent=1))
     return 0

@@ -129,7 +129,8 @@ def main() -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 2
     datasets = args.datasets or default_datasets()
-    print(f"{os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.1f}")
+    print(f"{os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.1f}; "
+          f"{_host.probe_text(_host.speed_probe())}")
     header = (f"{'dataset':34s} {'mode':4s} {'frames':>6s} {'fps':>6s} {'wall ms':>8s} {'CPU ms':>7s} "
               f"{'util':>5s} {'estim. CPU ms':>13s} {'waited ms':>9s} {'Λ wait ms':>9s} {'peak RSS MB':>11s} {'load':>5s} {'steal %':>7s}")
     print(header)
@@ -161,6 +162,7 @@ def main() -> int:
         pair = [r for r in rows if r["dataset"] == str(ds)]
         if len(pair) == 2 and pair[0]["poses_checksum"] != pair[1]["poses_checksum"]:
             print(f"  WARNING: {ds.name}: sequential and concurrent trajectories differ")
+    print(f"at the end: {_host.probe_text(_host.speed_probe())}")
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(rows, indent=2) + "\n")
     print(f"results: {args.json}")

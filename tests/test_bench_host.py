@@ -38,3 +38,22 @@ def test_missing_or_empty_readings_give_no_shares(tmp_path):
     # a kernel without the steal column (before Linux 2.6.11) reads as zero steal
     short = host.parse_cpu_line("cpu 1 2 3 4\n")
     assert short["steal"] == 0 and short["idle"] == 4
+
+
+def test_the_speed_probe_repeats_one_fixed_amount_of_work():
+    """The probe times the same work every call and in every process (a change of its time is
+    the host's): two builds of its workload give bit-identical reduced systems, call after
+    call, of the documented size."""
+    import numpy as np
+
+    host = load_benchmark("_host")
+    a, b = host.probe_workload(), host.probe_workload()
+    assert a.num_poses == 14 and 2500 <= a.num_observations <= 3600
+    first = a()
+    H = first.H.copy()
+    assert H.shape == (84, 84) and np.all(np.isfinite(H)) and np.abs(H).max() > 0
+    np.testing.assert_array_equal(b().H, H)
+    np.testing.assert_array_equal(a().H, H)
+    probe = host.speed_probe(repeats=3)
+    assert probe["probe_ms"] > 0 and np.isfinite(probe["probe_spread"])
+    assert host.probe_text(probe).startswith("host probe ")
