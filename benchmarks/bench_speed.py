@@ -129,8 +129,9 @@ def main() -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 2
     datasets = args.datasets or default_datasets()
+    probe = _host.speed_probe()
     print(f"{os.cpu_count()} CPUs; load average at start {os.getloadavg()[0]:.1f}; "
-          f"{_host.probe_text(_host.speed_probe())}")
+          f"{_host.probe_text(probe)}")
     header = (f"{'dataset':34s} {'mode':4s} {'frames':>6s} {'fps':>6s} {'wall ms':>8s} {'CPU ms':>7s} "
               f"{'util':>5s} {'estim. CPU ms':>13s} {'waited ms':>9s} {'Λ wait ms':>9s} {'peak RSS MB':>11s} {'load':>5s} {'steal %':>7s}")
     print(header)
@@ -151,6 +152,7 @@ def main() -> int:
                 print(f"{ds.name}: {mode} failed:\n{proc.stderr[-2000:]}")
                 continue
             row = json.loads(proc.stdout.strip().splitlines()[-1])
+            row["host_probe_ms_at_start"] = probe["probe_ms"]
             rows.append(row)
             waited = (f"{row['waited_tracker_ms']:9.2f} {row.get('waited_scale_drift_ms', 0.0):9.2f}"
                       if mode == "conc" else f"{'':9s} {'':9s}")
