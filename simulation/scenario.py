@@ -305,6 +305,8 @@ def _cross_checks(s: Scenario, err) -> None:
     cells = (t.extent / t.resolution) ** 2
     if cells > 4.2e6:
         raise err(f"terrain.extent / terrain.resolution gives {cells:.3g} grid cells (max 4.2e6)")
+    if s.render.adaptive_min_samples > s.render.samples:
+        raise err("render.adaptive_min_samples must not exceed render.samples")
     if s.frame_drops.min_burst > s.frame_drops.max_burst:
         raise err("frame_drops.min_burst must not exceed frame_drops.max_burst")
     for lo, hi in (("altitude_min", "altitude_max"),):

@@ -57,6 +57,7 @@ def _write(tmp_path: Path, text: str) -> Path:
     ("[terrain]\ncolor = [0.1, 0.2]\n", "terrain.color must have 3 elements"),
     ("[camera]\nmodel = \"kb4\"\nwidth = 320\nheight = 240\n", "square image"),
     ("[flight]\naltitude_min = 30.0\naltitude_max = 10.0\n", "altitude_min must not exceed"),
+    ("[render]\nsamples = 4\nadaptive_min_samples = 8\n", "adaptive_min_samples must not exceed"),
     ("seed = -1\n", "seed must be in"),
     ("[render\nsamples = 1\n", "invalid TOML"),
 ])
