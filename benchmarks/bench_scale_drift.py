@@ -35,6 +35,10 @@ for Eq. 17 (``Λ``) and the reference code's variant (``Λ_ref``) side by side:
 * the keyframe system over the run (does it follow the flight?): the number of keyframes, the
   longest time without a new keyframe (to the end of the run included), and the age of the oldest keyframe in the window (its
   maximum and median over the frames; from ``landmarks.npz``).
+* how Λ (Eq. 17) moves (:func:`lambda_steps`): the share of consecutive frames over which it
+  changes by less than 1e-4 (relative), and its median relative change on the frames that make
+  a keyframe and on the frame after them. Λ reads keyframes only, so it moves at keyframe
+  events (a keyframe taken or marginalised) and hardly in between.
 
 --plot writes DIR/<name>_scale_drift.png (height, true relative scale error, Λ and Λ_ref,
 drift rate, and the RPE per pair with the fixed scale and scale-free, over time, as the paper's
@@ -162,6 +166,7 @@ def analyse(run: Path, delta: float, lag: float, bin_s: float, plot_dir: Path | 
             "median": float(np.median(v[defined])) if defined.any() else None,
         }
     out["keyframe_system"] = keyframe_turnover(run, float(t[-1]))
+    out["lambda_steps"] = lambda_steps(lam["eq17"], np.array([d.keyframe for d in diags]))
     if plot_dir is not None:
         _plot(plot_dir / f"{run.name}_scale_drift.png", t - t0, height, series, rate, lam, t0,
               (rpe_fixed, rpe_free), align_frames)
@@ -189,6 +194,33 @@ def keyframe_turnover(run: Path, t_end: float) -> dict:
             out["oldest_keyframe_age_max_s"] = float(np.max(ages))
             out["oldest_keyframe_age_median_s"] = float(np.median(ages))
     return out
+
+
+def lambda_steps(lam: np.ndarray, keyframe: np.ndarray, still: float = 1e-4) -> dict:
+    """How a per-frame Λ series moves (NaN where not defined; ``keyframe[k]``: frame k made a
+    keyframe). Over the consecutive frame pairs (k - 1, k) with Λ defined at both, the relative
+    change ``|Λ_k / Λ_{k-1} - 1|``: ``still_share``, the share of all such pairs below
+    ``still``; ``keyframe_change_median``, the median signed change ``Λ_k / Λ_{k-1} - 1`` over
+    the pairs whose frame k made a keyframe (``keyframe_events`` of them);
+    ``after_keyframe_change_median`` the same for Λ of the frame after a keyframe frame
+    against the frame before the keyframe frame (``Λ_{k+1} / Λ_{k-1} - 1``). None where there
+    is no such pair."""
+    lam = np.asarray(lam, dtype=float)
+    keyframe = np.asarray(keyframe, dtype=bool)
+    prev, cur = lam[:-1], lam[1:]
+    pair = np.isfinite(prev) & np.isfinite(cur) & (prev > 0)
+    change = np.full(cur.shape, np.nan)
+    change[pair] = cur[pair] / prev[pair] - 1.0
+    at_kf = pair & keyframe[1:]
+    after = np.zeros_like(pair)
+    after[:-1] = at_kf[:-1] & np.isfinite(lam[2:])
+    after_change = lam[2:][after[:-1]] / prev[after] - 1.0 if after.any() else np.zeros(0)
+    return {
+        "still_share": float(np.mean(np.abs(change[pair]) < still)) if pair.any() else None,
+        "keyframe_events": int(at_kf.sum()),
+        "keyframe_change_median": float(np.median(change[at_kf])) if at_kf.any() else None,
+        "after_keyframe_change_median": float(np.median(after_change)) if after_change.size else None,
+    }
 
 
 def _plot(path: Path, t, height, series, rate, lam, t0, rpes, align_frames) -> None:
@@ -349,6 +381,13 @@ def main(argv=None) -> int:
             ages = f"{fmt(k['oldest_keyframe_age_max_s'], 1)} / {fmt(k['oldest_keyframe_age_median_s'], 1)}"
             print(f"{Path(r['run']).name[:34]:34s} {k['keyframes']:9d} {fmt(k['longest_keyframe_gap_s'], 1):>15s} "
                   f"{ages:>31s}")
+        print(f"\n{'run':34s} {'Λ still (< 1e-4)':>16s} {'keyframe frames':>15s} {'Λ change at / after them (median)':>34s}")
+        for r in results:
+            st = r["lambda_steps"]
+            pct = lambda x: "  n/a" if x is None else f"{100 * x:+.1f} %"  # noqa: E731
+            share = "  n/a" if st["still_share"] is None else f"{100 * st['still_share']:.1f} %"
+            print(f"{Path(r['run']).name[:34]:34s} {share:>16s} {st['keyframe_events']:15d} "
+                  f"{pct(st['keyframe_change_median']) + ' / ' + pct(st['after_keyframe_change_median']):>34s}")
         aligned = "all poses" if args.align_frames == 0 else f"first {args.align_frames} poses"
         print(f"\n{'run':34s} {'RMS scale error':>15s} {'RMS RPE fixed scale':>19s} {'RMS RPE Eq. 18-20':>17s}"
               f"   (Sim(3) on the {aligned}; Δ = {args.delta:g} s)")
