@@ -212,9 +212,8 @@ def lambda_steps(lam: np.ndarray, keyframe: np.ndarray, still: float = 1e-4) -> 
     change = np.full(cur.shape, np.nan)
     change[pair] = cur[pair] / prev[pair] - 1.0
     at_kf = pair & keyframe[1:]
-    after = np.zeros_like(pair)
-    after[:-1] = at_kf[:-1] & np.isfinite(lam[2:])
-    after_change = lam[2:][after[:-1]] / prev[after] - 1.0 if after.any() else np.zeros(0)
+    j = np.flatnonzero(at_kf[:-1] & np.isfinite(lam[2:]))  # frames j, j + 1 (keyframe), j + 2
+    after_change = lam[j + 2] / lam[j] - 1.0
     return {
         "still_share": float(np.mean(np.abs(change[pair]) < still)) if pair.any() else None,
         "keyframe_events": int(at_kf.sum()),

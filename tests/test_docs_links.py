@@ -6,6 +6,7 @@ dropped, spaces turned into ``-``. External links (``http...``) are not checked.
 
 from __future__ import annotations
 
+import functools
 import re
 from pathlib import Path
 
@@ -27,6 +28,7 @@ def _text(path: Path) -> str:
     return _FENCE.sub("", path.read_text(encoding="utf-8"))  # no headings or links in code
 
 
+@functools.cache  # read each linked document once
 def _anchors(path: Path) -> set[str]:
     return {slug(h) for h in _HEADING.findall(_text(path))}
 
