@@ -90,6 +90,9 @@ def install_stage_timers() -> None:
         (sd, "scale_drift_of_system", "sd.of_system"),
         (tr.FrameTracks, "from_result", "FrameTracks.from_result"),
         (hs.WindowHessian, "negative_entropy", "negative_entropy"),
+        (V, "_try_initialization", "map init (total)"),
+        (vo, "init_candidates", "init.candidates"),
+        (vo, "find_map_initialization", "init.two_view"),
     ]:
         wrap(owner, name, label)
 

@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 from granite.backend import BackendConfig, SlidingWindow
 from granite.camera import make_camera
 from granite.estimator.landmark_creation import LandmarkTriangulator
-from granite.estimator.map_initialization import init_candidates, rotation_compensated_parallax
-from granite.estimator.tracks import FrameTracks
+from granite.estimator.map_initialization import init_candidates, quantile_linear, rotation_compensated_parallax
+from granite.estimator.tracks import FrameTracks, shared_tracks
 from granite.evaluation.initialization import initialization_delay, parallax_available, parallax_baseline
 from granite.trajectory import Trajectory
 
@@ -63,6 +63,54 @@ def test_parallax_matches_the_exact_rotation_removed(seed):
                 assert est == pytest.approx(truth, rel=0.2)
             quantiles.append(est)
         assert quantiles[0] < quantiles[1] < quantiles[2]
+
+
+def _parallax_numpy(bk, bc):
+    """The numpy version the numba kernel replaced (independent arithmetic: BLAS products,
+    numpy's quantile)."""
+    use = np.ones(len(bk), dtype=bool)
+    angles = np.zeros(len(bk))
+    for _ in range(2):
+        u, _, vt = np.linalg.svd(bc[use].T @ bk[use])
+        R = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        angles = np.degrees(np.arccos(np.clip(np.sum((bk @ R.T) * bc, axis=1), -1.0, 1.0)))
+        use = angles <= np.quantile(angles, 0.75)
+        if use.sum() < 3:
+            break
+    return angles
+
+
+def test_parallax_kernel_agrees_with_the_numpy_computation():
+    rng = np.random.default_rng(7)
+    for n in (3, 4, 17, 250, 901):
+        bk = _unit(rng.normal(size=(n, 3)))
+        bc = _unit(bk + 0.03 * rng.normal(size=(n, 3)))
+        np.testing.assert_allclose(rotation_compensated_parallax(bk, bc), _parallax_numpy(bk, bc),
+                                   rtol=0, atol=1e-8)
+    assert rotation_compensated_parallax(bk[:2], bc[:2]).shape == (0,)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 10, 101, 1000])
+def test_quantile_is_numpys_to_the_bit(n):
+    rng = np.random.default_rng(n)
+    values = rng.normal(size=n)
+    for q in (0.0, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0, *rng.uniform(size=5)):
+        assert quantile_linear(values, q) == np.quantile(values, q)
+    values[n // 2] = np.nan
+    assert np.isnan(quantile_linear(values, 0.5))
+
+
+def test_shared_tracks_against_a_set_intersection():
+    rng = np.random.default_rng(3)
+    for n_cur, n_ref in ((0, 5), (5, 0), (40, 60), (900, 900)):
+        cur_ids = rng.choice(3000, n_cur, replace=False)
+        ref_ids = rng.choice(3000, n_ref, replace=False)
+        cur = FrameTracks(None, None, cur_ids, rng.normal(size=(n_cur, 2)), np.zeros(n_cur, np.int64))
+        ref = FrameTracks(None, None, ref_ids, rng.normal(size=(n_ref, 2)), np.zeros(n_ref, np.int64))
+        common, rows_cur, rows_ref = shared_tracks(cur, ref)
+        expected = [int(i) for i in cur_ids if int(i) in set(ref_ids.tolist())]
+        assert common.tolist() == expected
+        assert cur.ids[rows_cur].tolist() == expected and ref.ids[rows_ref].tolist() == expected
 
 
 def _pinhole():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from granite.optical_flow import OpticalFlowResult
@@ -59,10 +60,26 @@ class FrameTracks:
 
 def shared_tracks(cur: FrameTracks, ref: FrameTracks) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tracks of ``cur`` that ``ref`` has too, in ``cur``'s order: ``(ids, rows in cur,
-    rows in ref)``."""
-    in_ref = np.isin(cur.ids, ref.ids, assume_unique=True)
-    rows_cur = np.flatnonzero(in_ref)
-    common = cur.ids[rows_cur]
-    sorter = np.argsort(ref.ids, kind="stable")
-    rows_ref = sorter[np.searchsorted(ref.ids, common, sorter=sorter)]
-    return common, rows_cur, rows_ref
+    rows in ref)`` (track ids are unique within a frame)."""
+    rows_cur, rows_ref = _shared_rows(cur.ids, ref.ids)
+    return cur.ids[rows_cur], rows_cur, rows_ref
+
+
+@numba.njit(cache=True, nogil=True)
+def _shared_rows(cur_ids: np.ndarray, ref_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of the ids both arrays hold, in ``cur_ids``' order (ids unique in each): binary
+    search in the sorted ``ref_ids``."""
+    order = np.argsort(ref_ids)
+    sorted_ref = ref_ids[order]
+    pos = np.searchsorted(sorted_ref, cur_ids)
+    m = len(sorted_ref)
+    rows_cur = np.empty(len(cur_ids), dtype=np.int64)
+    rows_ref = np.empty(len(cur_ids), dtype=np.int64)
+    k = 0
+    for i in range(len(cur_ids)):
+        p = pos[i]
+        if p < m and sorted_ref[p] == cur_ids[i]:
+            rows_cur[k] = i
+            rows_ref[k] = order[p]
+            k += 1
+    return rows_cur[:k], rows_ref[:k]
