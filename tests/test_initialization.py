@@ -1,10 +1,11 @@
 """Two-view map initialisation against synthetic scenes with known relative motion."""
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from granite.estimator.initialization import InitializationConfig, initialize_two_view
+from granite.estimator.initialization import InitializationConfig, _recover_pose, initialize_two_view
 from granite.estimator.triangulation import parallax_angles, triangulate_bearings
 
 FOCAL = 300.0
@@ -128,3 +129,25 @@ def test_rotation_only_share_rejects_turns_the_translation_fits_by_chance():
                     if fraction < 1.0:
                         assert res.rotation_only_inliers < fraction * res.num_inliers
     assert accepted[0.5] < accepted[1.0]
+
+
+@pytest.mark.parametrize("baseline", [1e-4, 1e-2, 1.0])
+def test_recover_pose_chooses_as_opencv(baseline):
+    """Our cheirality counts pick the decomposition of E that cv2.recoverPose picks (the
+    reference computation), near-pure rotations included, where the counts are close."""
+    rng = np.random.default_rng(int(baseline * 1e4) + 11)
+    for _ in range(25):
+        n = int(rng.integers(20, 700))
+        pts = np.column_stack([rng.uniform(-5, 5, n), rng.uniform(-3, 3, n), rng.uniform(0.5, 60, n)])
+        R = Rotation.from_rotvec(rng.normal(0, 0.2, 3)).as_matrix()
+        p_c = pts @ R.T + baseline * rng.normal(size=3)
+        xk = pts[:, :2] / pts[:, 2:] + rng.normal(0, 1e-3, (n, 2))
+        xc = p_c[:, :2] / p_c[:, 2:] + rng.normal(0, 1e-3, (n, 2))
+        E, _ = cv2.findEssentialMat(xk, xc, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=2.5e-3)
+        if E is None:
+            continue
+        for i in range(0, E.shape[0], 3):
+            _, R_cv, t_cv, _ = cv2.recoverPose(E[i:i + 3], xk, xc, np.eye(3))
+            R_ours, t_ours = _recover_pose(E[i:i + 3], xk, xc)
+            np.testing.assert_array_equal(R_ours, R_cv)
+            np.testing.assert_array_equal(t_ours, t_cv)

@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import cv2
+import numba
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
@@ -91,6 +92,114 @@ def _evaluate(model: str, R, t, bk, bc, xk, xc) -> _Hypothesis:
     err = np.sum((_project(points) - xk) ** 2, axis=1) + np.sum((_project(points_c) - xc) ** 2, axis=1)
     err = np.where(valid, 0.5 * err, np.inf)
     return _Hypothesis(model, R, t, err, points, valid)
+
+
+def _recover_pose(E: np.ndarray, xk: np.ndarray, xc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.recoverPose(E, xk, xc, I)``'s ``R, t``: of the four decompositions of ``E``
+    (``cv2.decomposeEssentialMat``), the one with the most correspondences in front of both
+    cameras and nearer than 50 baselines, OpenCV's order breaking ties. The counts come from
+    :func:`_cheirality_counts` instead of OpenCV's SVD per point and decomposition, which
+    made ``recoverPose`` the costliest step of an attempt (4-5x the time)."""
+    R1, R2, t = cv2.decomposeEssentialMat(E)
+    g1, g2, g3, g4 = _cheirality_counts(np.ascontiguousarray(R1), np.ascontiguousarray(R2),
+                                        np.ascontiguousarray(t.reshape(3)), xk, xc, 50.0)
+    if g1 >= g2 and g1 >= g3 and g1 >= g4:
+        return R1, t
+    if g2 >= g1 and g2 >= g3 and g2 >= g4:
+        return R2, t
+    if g3 >= g1 and g3 >= g2 and g3 >= g4:
+        return R1, -t
+    return R2, -t
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _cheirality_counts(R1: np.ndarray, R2: np.ndarray, t: np.ndarray, xk: np.ndarray, xc: np.ndarray,
+                       max_depth: float) -> np.ndarray:
+    """Per decomposition ``[R1|t], [R2|t], [R1|-t], [R2|-t]`` of an essential matrix, the
+    number of correspondences (normalised coordinates ``xk`` in ``[I|0]``, ``xc``) whose
+    triangulation lies in front of both cameras nearer than ``max_depth``, tested as OpenCV's
+    ``recoverPose`` does on the homogeneous DLT solution (the unit vector ``X`` minimising
+    ``|A X|``: ``z w > 0`` and ``z / w < max_depth`` in both cameras). ``X`` comes from inverse
+    iteration on ``A^T A`` instead of an SVD: the first iteration from ``(0, 0, 0, 1)`` gives
+    the inhomogeneous solution (``w = 1``), the next ones take a point near infinity to the
+    DLT's small ``w`` of either sign."""
+    good = np.zeros(4, dtype=np.int64)
+    A = np.empty((4, 4))
+    M = np.empty((4, 4))
+    v = np.empty(4)
+    T = np.empty((4, 5))
+    y = np.empty(4)
+    for h in range(4):
+        R = R1 if h % 2 == 0 else R2
+        sign = 1.0 if h < 2 else -1.0
+        for i in range(xk.shape[0]):
+            # DLT rows x P[2] - P[0], y P[2] - P[1] of both views, P_k = [I|0], P_c = [R|t]
+            A[0, 0], A[0, 1], A[0, 2], A[0, 3] = -1.0, 0.0, xk[i, 0], 0.0
+            A[1, 0], A[1, 1], A[1, 2], A[1, 3] = 0.0, -1.0, xk[i, 1], 0.0
+            for r in range(2):
+                x = xc[i, r]
+                for c in range(3):
+                    A[2 + r, c] = x * R[2, c] - R[r, c]
+                A[2 + r, 3] = sign * (x * t[2] - t[r])
+            for c in range(4):
+                for d in range(4):
+                    acc = 0.0
+                    for r in range(4):
+                        acc += A[r, c] * A[r, d]
+                    M[c, d] = acc
+            v[0], v[1], v[2], v[3] = 0.0, 0.0, 0.0, 1.0
+            for _ in range(_DLT_INVERSE_ITERATIONS):
+                if not _solve4_in_place(M, v, T, y):
+                    break
+            w, z = v[3], v[2]
+            if not (z * w > 0.0 and z / w < max_depth):
+                continue
+            zc = (R[2, 0] * v[0] + R[2, 1] * v[1] + R[2, 2] * v[2]) / w + sign * t[2]
+            if zc > 0.0 and zc < max_depth:
+                good[h] += 1
+    return good
+
+
+#: Inverse iterations towards the DLT solution. On 300 random two-view problems (noisy,
+#: near-pure rotations included) 3 iterations chose the decomposition OpenCV chose every time
+#: (counts at most 2 apart), 2 iterations missed once; on the 162 essential matrices of the
+#: bench and asset sequences and the KITTI clips 3 iterations agreed every time.
+_DLT_INVERSE_ITERATIONS = 3
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _solve4_in_place(M: np.ndarray, v: np.ndarray, T: np.ndarray, y: np.ndarray) -> bool:
+    """``v <- M^-1 v / |M^-1 v|`` for a 4x4 ``M`` (Gaussian elimination with partial pivoting
+    in the workspace ``T`` (4, 5), ``y`` (4,)); False (``v`` unchanged) if ``M`` is singular."""
+    for r in range(4):
+        for c in range(4):
+            T[r, c] = M[r, c]
+        T[r, 4] = v[r]
+    for c in range(4):
+        p = c
+        for r in range(c + 1, 4):
+            if abs(T[r, c]) > abs(T[p, c]):
+                p = r
+        if T[p, c] == 0.0:
+            return False
+        if p != c:
+            for k in range(5):
+                T[c, k], T[p, k] = T[p, k], T[c, k]
+        for r in range(c + 1, 4):
+            f = T[r, c] / T[c, c]
+            for k in range(c, 5):
+                T[r, k] -= f * T[c, k]
+    for r in range(3, -1, -1):
+        acc = T[r, 4]
+        for k in range(r + 1, 4):
+            acc -= T[r, k] * y[k]
+        y[r] = acc / T[r, r]
+    norm = np.sqrt(y[0] * y[0] + y[1] * y[1] + y[2] * y[2] + y[3] * y[3])
+    if not np.isfinite(norm) or norm == 0.0:
+        return False
+    for r in range(4):
+        v[r] = y[r] / norm
+    return True
 
 
 def _sampson_residuals(params: np.ndarray, xk: np.ndarray, xc: np.ndarray) -> np.ndarray:
@@ -189,7 +298,7 @@ def initialize_two_view(
     )
     if E is not None and E.shape[0] >= 3:
         for i in range(0, E.shape[0], 3):  # several solutions may be stacked
-            _, R, t, _ = cv2.recoverPose(E[i : i + 3], xk, xc, np.eye(3))
+            R, t = _recover_pose(E[i : i + 3], xk, xc)
             hypotheses.append(_evaluate("essential", R, t, bk, bc, xk, xc))
     H, _ = cv2.findHomography(xk, xc, cv2.RANSAC, thr)
     if H is not None:
