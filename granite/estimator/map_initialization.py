@@ -23,7 +23,7 @@ from granite.estimator.initialization import (
 )
 from granite.estimator.landmark_creation import LandmarkTriangulator
 from granite.estimator.tracks import FrameTracks, shared_tracks
-from granite.geometry import se3_inverse
+from granite.geometry import kabsch_rotation, se3_inverse
 
 
 @dataclass(frozen=True)
@@ -91,16 +91,7 @@ def _parallax_kernel(bk: np.ndarray, bc: np.ndarray, q: float) -> tuple[np.ndarr
     use = np.ones(n, dtype=np.bool_)
     angles = np.zeros(n)
     for _ in range(2):
-        M = np.zeros((3, 3))
-        for i in range(n):
-            if use[i]:
-                for r in range(3):
-                    for c in range(3):
-                        M[r, c] += bc[i, r] * bk[i, c]
-        u, _, vt = np.linalg.svd(M)
-        D = np.eye(3)
-        D[2, 2] = np.linalg.det(u @ vt)
-        R = u @ D @ vt
+        R = kabsch_rotation(bk, bc, use)
         for i in range(n):
             cos = 0.0
             for r in range(3):

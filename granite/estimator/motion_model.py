@@ -13,7 +13,7 @@ import numba
 import numpy as np
 
 from granite.backend import SlidingWindow
-from granite.geometry import se3_exp, se3_inverse, se3_log
+from granite.geometry import kabsch_rotation, se3_exp, se3_inverse, se3_log
 from granite.optical_flow.prediction import predict_positions
 
 
@@ -251,27 +251,12 @@ def bearing_rotation(camera, predicted_uv: np.ndarray, tracked_uv: np.ndarray,
 
 
 @numba.njit(cache=True, nogil=True)
-def _kabsch_rotation(b_p: np.ndarray, b_t: np.ndarray, use: np.ndarray) -> np.ndarray:
-    """``R`` minimising ``sum |b_t - R b_p|^2`` over the pairs ``use`` (proper rotation)."""
-    M = np.zeros((3, 3))
-    for i in range(b_p.shape[0]):
-        if use[i]:
-            for r in range(3):
-                for c in range(3):
-                    M[r, c] += b_t[i, r] * b_p[i, c]
-    U, _, Vt = np.linalg.svd(M)
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    return U @ D @ Vt
-
-
-@numba.njit(cache=True, nogil=True)
 def _kabsch_with_outlier_pass(b_p: np.ndarray, b_t: np.ndarray, min_pairs: int) -> np.ndarray:
     """:func:`bearing_rotation` on unit bearings (n, 3): Kabsch, then once more without the
     pairs whose residual angle (sine) exceeds 3 medians, if that leaves ``min_pairs``."""
     n = b_p.shape[0]
     use = np.ones(n, dtype=np.bool_)
-    R = _kabsch_rotation(b_p, b_t, use)
+    R = kabsch_rotation(b_p, b_t, use)
     angle = np.empty(n)
     for i in range(n):
         q0 = R[0, 0] * b_p[i, 0] + R[0, 1] * b_p[i, 1] + R[0, 2] * b_p[i, 2]
@@ -288,4 +273,4 @@ def _kabsch_with_outlier_pass(b_p: np.ndarray, b_t: np.ndarray, min_pairs: int) 
         kept += use[i]
     if kept < min_pairs or kept == n:
         return R
-    return _kabsch_rotation(b_p, b_t, use)
+    return kabsch_rotation(b_p, b_t, use)

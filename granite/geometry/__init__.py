@@ -22,6 +22,7 @@ from granite.geometry.se3 import (
 from granite.geometry.sim3 import sim3_exp, sim3_log
 from granite.geometry.so3 import (
     hat,
+    kabsch_rotation,
     so3_exp,
     so3_left_jacobian,
     so3_left_jacobian_inv,
@@ -33,6 +34,7 @@ from granite.geometry.so3 import (
 
 __all__ = [
     "hat",
+    "kabsch_rotation",
     "vee",
     "so3_exp",
     "so3_log",

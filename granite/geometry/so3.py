@@ -1,4 +1,4 @@
-"""SO(3) kernels: hat/vee, exponential and logarithm maps, left/right Jacobians.
+"""SO(3) kernels: hat/vee, exponential and logarithm maps, left/right Jacobians, the Kabsch rotation.
 
 Conventions: rotation vectors ``w`` (3,) are axis * angle in radians; ``hat(w) @ p == cross(w, p)``
 (paper Eq. 2). Jacobians follow the usual definitions
@@ -6,7 +6,8 @@ Conventions: rotation vectors ``w`` (3,) are axis * angle in radians; ``hat(w) @
 * right: ``exp(w + d) ~= exp(w) @ exp(J_r(w) @ d)``
 * left:  ``exp(w + d) ~= exp(J_l(w) @ d) @ exp(w)``  (``J_l(w) = J_r(-w) = R @ J_r(w)``)
 
-All functions are ``numba.njit(cache=True)`` single-element kernels on float64 numpy arrays and
+All functions are ``numba.njit(cache=True)`` kernels on float64 numpy arrays (single elements, but
+:func:`kabsch_rotation` over point sets) and
 may be called from Python or from other njit functions. Pass numpy arrays (not lists).
 """
 
@@ -196,3 +197,19 @@ def so3_left_jacobian_inv(w: np.ndarray) -> np.ndarray:
     """Inverse left Jacobian ``I - 1/2 [w]_x + (1/t^2 - (1+cos t)/(2 t sin t)) [w]_x^2``."""
     theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
     return _poly_skew(w, 1.0, -0.5, _jac_inv_coeff(theta2))
+
+
+@numba.njit(cache=True, nogil=True)
+def kabsch_rotation(b_p: np.ndarray, b_t: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """``R`` minimising ``sum |b_t - R b_p|^2`` over the pairs ``use`` ((n, 3) each, (n,) bool;
+    a proper rotation: Kabsch / Umeyama without scale)."""
+    M = np.zeros((3, 3))
+    for i in range(b_p.shape[0]):
+        if use[i]:
+            for r in range(3):
+                for c in range(3):
+                    M[r, c] += b_t[i, r] * b_p[i, c]
+    U, _, Vt = np.linalg.svd(M)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    return U @ D @ Vt
