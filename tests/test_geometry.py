@@ -392,3 +392,23 @@ def test_kernels_callable_from_njit():
     np.testing.assert_allclose(A, se3_adjoint(T), atol=0)
     np.testing.assert_allclose(D, decoupled_increment(T, xi), atol=0)
     np.testing.assert_allclose(sim3_exp(s), sim3_exp(np.append(xi, 0.2)), atol=1e-12)
+
+
+def test_kabsch_rotation_matches_scipy_and_ignores_unused_pairs():
+    """Against scipy's ``Rotation.align_vectors`` (an independent implementation) on noisy
+    unit vectors; pairs outside ``use`` (here gross outliers) do not count."""
+    from granite.geometry import kabsch_rotation
+
+    rng = np.random.default_rng(4)
+    R_true = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    b_p = rng.normal(size=(200, 3))
+    b_p /= np.linalg.norm(b_p, axis=1, keepdims=True)
+    b_t = b_p @ R_true.T + 0.01 * rng.normal(size=(200, 3))
+    use = np.ones(200, dtype=bool)
+    use[:20] = False
+    b_t[:20] = rng.normal(size=(20, 3))  # outliers, excluded by `use`
+    R = kabsch_rotation(b_p, b_t, use)
+    expected, _ = Rotation.align_vectors(b_t[use], b_p[use])
+    np.testing.assert_allclose(R, expected.as_matrix(), atol=1e-10)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) > 0
