@@ -93,6 +93,27 @@ def configure_cycles(scene, render_cfg, width: int, height: int, seed: int) -> N
     scene.render.use_motion_blur = bool(render_cfg.motion_blur)
     scene.render.motion_blur_shutter = render_cfg.shutter
     scene.view_layers[0].use_pass_z = True
+    _bounce_ray_visibility(scene, render_cfg.max_bounces > 0)
+
+
+def _bounce_ray_visibility(scene, visible: bool) -> None:
+    """Show or hide the built world's surfaces and sky to the rays after the first hit.
+
+    With ``max_bounces = 0`` Cycles still samples the BSDF at the camera ray's hit and traces
+    that ray (for multiple importance sampling of lights it might hit): it evaluated the full
+    surface shader wherever it hit terrain or a rock (whose sky term is an emission), and the
+    world shader wherever it escaped, for every sample, and added the hit surface's sky
+    emission as a noisy one-bounce inter-reflection. Hiding surfaces and sky from those rays
+    (camera and shadow rays still see everything) removes that work and that light, as
+    ``max_bounces = 0`` promises; the sun still lights the surfaces through its shadow rays.
+    """
+    for obj in scene.objects:
+        if obj.type == "MESH":
+            obj.visible_diffuse = obj.visible_glossy = visible
+            obj.visible_transmission = obj.visible_volume_scatter = visible
+    if scene.world is not None:
+        vis = scene.world.cycles_visibility
+        vis.diffuse = vis.glossy = vis.transmission = vis.scatter = visible
 
 
 def make_camera(scene, cam_cfg):

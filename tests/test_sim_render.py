@@ -248,3 +248,43 @@ def test_adaptive_sampling_settings_reach_cycles(samples, min_samples, expected)
     off = _scenario(camera, render={"samples": samples})
     configure_cycles(scene, off.render, 64, 48, 5)
     assert not scene.cycles.use_adaptive_sampling
+
+
+def test_no_light_after_the_first_hit_without_bounces():
+    """With ``max_bounces = 0`` a surface gets the sun (shadow rays) and its own sky term,
+    nothing else: a bright emitter beside the ground (as the terrain's own sky emission is
+    to its neighbours) brightens no ground pixel. Cycles still traces a BSDF ray from every
+    first hit and used to add the emission it found there; with ``max_bounces = 1`` it must
+    (the control)."""
+    import dataclasses
+
+    from simulation.plan import make_plan
+    from simulation.render import Renderer
+    from simulation.terrain.scene import build_world
+
+    camera = {"width": 96, "height": 72, "fx": 70.0, "fy": 70.0, "cx": 47.5, "cy": 35.5}
+    s0 = _scenario(camera, render={"samples": 8, "max_bounces": 0})
+    s1 = dataclasses.replace(s0, render=dataclasses.replace(s0.render, max_bounces=1))
+    plan = make_plan(s0)
+    build_world(s0, plan.model)
+    ground = float(plan.model.ground_height(1.0, 2.0))
+    marker = np.array([1.0, 2.0, ground + 0.6])
+    _add_marker(marker, 0.25)
+    lamp = bpy.data.objects["marker"]
+    T_w_c = _look_at(marker + np.array([-2.5, -2.5, 2.5]), marker - np.array([0, 0, 0.6]))
+    brightening = {}
+    with Renderer(s0) as renderer:
+        for name, cfg in (("no bounce", s0.render), ("one bounce", s1.render)):
+            renderer.reconfigure(cfg)
+            lamp.hide_render = False
+            lit, depth_lit = renderer.render(T_w_c)
+            lamp.hide_render = True
+            dark, depth_dark = renderer.render(T_w_c)
+            # ground pixels at least 3 pixels away from the emitter's (anti-aliased edges)
+            near = cv2.dilate((~(np.abs(depth_lit - depth_dark) < 1e-4)).astype(np.uint8),
+                              np.ones((7, 7), np.uint8)) > 0
+            ground_px = np.isfinite(depth_dark) & ~near
+            assert 0.5 < ground_px.mean() < 0.99
+            brightening[name] = float((lit - dark).mean(axis=2)[ground_px].max())
+    assert brightening["one bounce"] > 0.05, brightening  # the control: the emitter lights
+    assert brightening["no bounce"] <= 1e-6, brightening
