@@ -101,15 +101,10 @@ def _recover_pose(E: np.ndarray, xk: np.ndarray, xc: np.ndarray) -> tuple[np.nda
     :func:`_cheirality_counts` instead of OpenCV's SVD per point and decomposition, which
     made ``recoverPose`` the costliest step of an attempt (4-5x the time)."""
     R1, R2, t = cv2.decomposeEssentialMat(E)
-    g1, g2, g3, g4 = _cheirality_counts(np.ascontiguousarray(R1), np.ascontiguousarray(R2),
-                                        np.ascontiguousarray(t.reshape(3)), xk, xc, 50.0)
-    if g1 >= g2 and g1 >= g3 and g1 >= g4:
-        return R1, t
-    if g2 >= g1 and g2 >= g3 and g2 >= g4:
-        return R2, t
-    if g3 >= g1 and g3 >= g2 and g3 >= g4:
-        return R1, -t
-    return R2, -t
+    good = _cheirality_counts(np.ascontiguousarray(R1), np.ascontiguousarray(R2),
+                              np.ascontiguousarray(t.reshape(3)), xk, xc, 50.0)
+    h = int(np.argmax(good))  # the first of equal counts, as OpenCV's order
+    return (R1 if h % 2 == 0 else R2), (t if h < 2 else -t)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
