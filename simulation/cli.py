@@ -1,7 +1,7 @@
 """``granite-sim``: render Mars test-bench flights with exact ground truth.
 
     granite-sim render SCENARIO --out DIR [--width W --height H --samples N --frames A:B
-                                           --grayscale --depth-format npy|inv16
+                                           --grayscale|--color --depth-format npy|inv16
                                            --no-sensor --quiet]
     granite-sim list
     granite-sim view DATASET [--rerun FILE.rrd | --spawn] [--no-depth]
@@ -46,8 +46,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--height", type=_positive_int, help="image height (intrinsics rescaled)")
     r.add_argument("--samples", type=_positive_int, help="Cycles samples per pixel")
     r.add_argument("--frames", metavar="A:B", help="render frames A..B-1 only")
-    r.add_argument("--grayscale", action="store_true", default=None,
-                   help="write 8-bit grayscale images")
+    colour = r.add_mutually_exclusive_group()
+    colour.add_argument("--grayscale", dest="grayscale", action="store_true", default=None,
+                        help="monochrome images (the default: the sensor model is a monochrome "
+                        "navigation camera)")
+    colour.add_argument("--color", dest="grayscale", action="store_false",
+                        help="colour images: the sensor model applied per channel (a colour "
+                        "sensor without a Bayer mosaic); readers convert them to grayscale, "
+                        "which averages the channels' noise")
     r.add_argument("--depth-format", choices=("npy", "inv16"),
                    help="float32 .npy (exact) or inv16: 16-bit PNG of inverse depth (compact)")
     r.add_argument("--no-sensor", action="store_true",

@@ -59,7 +59,8 @@ class RenderConfig:
                            "the sensor's motion_blur is the cheap default")
     shutter: float = _f(0.5, 0.0, 1.0, doc="exposure time as a fraction of the frame interval")
     threads: int = _f(2, 1, 256)
-    grayscale: bool = _f(False)
+    grayscale: bool = _f(True, doc="8-bit monochrome images, the default sensor's (false: colour, "
+                         "the sensor model applied per channel)")
     depth_format: str = _f("npy", choices=("npy", "inv16"))
 
 
