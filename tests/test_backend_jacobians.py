@@ -396,3 +396,20 @@ def test_schur_reduce_is_accurate_on_near_singular_landmark_blocks(damping):
         ks = [k for k in range(lm_ptr[i], lm_ptr[i + 1]) if w[k] > 0.0]
         Hll = sum(w[k] * J_l[k].T @ J_l[k] for k in ks) + damping * np.eye(3)
         np.testing.assert_allclose(Hll_inv[i] @ Hll, np.eye(3), atol=1e-9)
+
+
+def test_no_motion_prior_determines_the_translations_above_round_off():
+    """Paper Sec. IV-B: the no-motion prior ties the translations of frames linked only by
+    points at infinity "avoiding an undetermined system". With every landmark at infinity
+    nothing else informs the translations, so the window's pose system (gauge prior 1e8
+    included) must be positive definite by more than its round-off (eps x lambda_max):
+    the former default 1e-12 (and 1e-9) gave a smallest eigenvalue of round-off size and
+    sign, and in the VO the translations wandered during a turn in place (docs/backend.md)."""
+    _, win = _window()  # the default BackendConfig
+    for f in win.frame_ids:
+        for lm in win.landmarks.hosted_by(f):
+            win.set_inverse_distance(lm, 0.0)
+    hess = win.hessian_blocks()
+    assert np.any(hess.H_no_motion != 0)
+    lam = np.linalg.eigvalsh(0.5 * (hess.H + hess.H.T))
+    assert lam[0] > 10 * np.finfo(float).eps * lam[-1]

@@ -49,7 +49,7 @@ def test_reference_file_is_the_defaults_with_our_additions_off():
                        ("estimator", "predict_before_estimate"), ("estimator", "tracked_rotation_guess"),
                        ("estimator", "prediction_depth_neighbours"),
                        ("estimator", "outlier_reoptimize_iterations"),
-                       ("backend", "jacobian_reuse_steps"),
+                       ("backend", "jacobian_reuse_steps"), ("backend", "no_motion_weight"),
                        ("estimator", "reinit_keeps_scale"), ("estimator", "init_max_candidates"),
                        ("estimator", "init_candidate_min_parallax"),
                        ("estimator", "init_keep_reference"), ("estimator", "entropy_iteration"),
