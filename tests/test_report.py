@@ -203,3 +203,16 @@ def test_trajectory_plot_draws_each_submap_aligned_on_the_ground_truth(tmp_path)
     labels = [line.get_label() for line in top.lines]
     assert "estimate, sub-map 0 (Sim(3) scale 3.33)" in labels and "estimate, sub-map 1 (Sim(3) scale 0.5)" in labels
     _check_png(tmp_path / "t.png", 1320)
+
+
+def test_a_run_without_a_recording_does_not_load_rerun():
+    """``granite run`` without ``--rerun`` (its pipeline, run folder and report plots) never
+    imports rerun, which would cost ~44 MB of resident memory; the lazy
+    ``granite.visualization.RerunLogger`` still resolves when asked for."""
+    import subprocess
+    import sys
+
+    code = ("import sys, granite.cli.run_cmd, granite.visualization.report, granite.visualization as v; "
+            "print('rerun' in sys.modules, end=' '); v.RerunLogger; print('rerun' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "True"]

@@ -23,6 +23,8 @@ per kind (``summary.json``).
 
 from __future__ import annotations
 
+import ctypes
+import gc
 import json
 import warnings
 from dataclasses import dataclass, field
@@ -224,7 +226,23 @@ def run_vo(
         raise InputError("no frame could be estimated: every processed frame was skipped", dataset.root)
     keyframes = [(float(dataset.timestamps[f]), f, s) for f, s in vo.keyframe_log if f < len(dataset)]
     traj = Trajectory(np.array(times), np.array(poses), np.array(submaps, dtype=np.int64))
+    del vo, pipeline, outputs
+    return_freed_memory()
     return RunResult(traj, diags, keyframes, skipped, interrupted, np.array(indices, np.int64), tally)
+
+
+def return_freed_memory() -> None:
+    """Free unreachable objects and hand the C heap's free pages back to the system.
+
+    glibc's malloc keeps freed memory in the process (the numpy temporaries of thousands of
+    frames leave the heap fragmented), so without this a run's resident size after the VO is
+    its peak, and the report's plots come on top of it (docs/architecture.md, "Memory").
+    No-op where the C library has no ``malloc_trim``."""
+    gc.collect()
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (AttributeError, OSError):
+        pass
 
 
 def submaps_csv(result: RunResult) -> str:

@@ -1,0 +1,225 @@
+"""Where the memory of a ``granite run`` goes (issue 15): resident memory per stage, and the
+arrays the VO holds at its largest resident size.
+
+Runs what ``granite run DATASET --out DIR [--rerun FILE]`` runs, in this process, with a thread
+that reads the resident set size (``VmRSS`` of ``/proc/self/status``) every 10 ms. Prints per
+stage the resident size at its end and its peak, the increment over the previous stage, and
+for the VO stage the numpy arrays reachable from the estimator (grouped by component: optical
+flow, sliding window, ...) at the sampled frame with the largest resident size. What the
+arrays do not explain is the allocator's slack, numba's runtime allocations (typed
+containers, temporaries) and the libraries' own buffers.
+
+    python benchmarks/bench_memory.py DATASET [--max-frames N] [--sequential] [--rerun]
+
+Linux only (``/proc``). Run it with a warm numba cache (one ``granite run`` before): a cold
+cache compiles the kernels in this process and its peak is the compiler's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import threading
+import time
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def rss_mb() -> float:
+    """Resident set size of this process in MB (``VmRSS``)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    raise RuntimeError("no VmRSS in /proc/self/status")
+
+
+class RssSampler:
+    """Samples the resident size every ``period`` seconds; ``stage(name)`` starts a stage."""
+
+    def __init__(self, period: float = 0.01):
+        self.period = period
+        self.stages: list[tuple[str, float, float]] = []  # (name, end RSS, peak RSS)
+        self._name, self._peak = "start", rss_mb()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.period):
+            value = rss_mb()
+            with self._lock:
+                self._peak = max(self._peak, value)
+
+    def stage(self, name: str) -> None:
+        """Close the running stage and start ``name``."""
+        value = rss_mb()
+        with self._lock:
+            self.stages.append((self._name, value, max(self._peak, value)))
+            self._name, self._peak = name, value
+
+    def close(self) -> None:
+        self.stage("")
+        self._stop.set()
+        self._thread.join()
+
+
+def array_bytes(root, seen: set[int], depth: int = 0) -> int:
+    """Bytes of the numpy arrays reachable from ``root`` (attributes, containers) not in ``seen``.
+
+    Views count their base once. Modules, classes and functions are not followed."""
+    if depth > 12 or id(root) in seen:
+        return 0
+    seen.add(id(root))
+    if isinstance(root, np.ndarray):
+        base = root
+        while isinstance(base.base, np.ndarray):
+            base = base.base
+        if base is not root:
+            return array_bytes(base, seen, depth + 1)
+        return int(root.nbytes) if root.flags.owndata else 0
+    if isinstance(root, (str, bytes, int, float, bool, type(None), type, type(rss_mb))):
+        return 0
+    if type(root).__module__ in ("builtins",) and not isinstance(root, (dict, list, tuple, set)):
+        return 0
+    total = 0
+    if isinstance(root, dict):
+        for key, value in root.items():
+            total += array_bytes(key, seen, depth + 1) + array_bytes(value, seen, depth + 1)
+        return total
+    if isinstance(root, (list, tuple, set, frozenset)):
+        for value in root:
+            total += array_bytes(value, seen, depth + 1)
+        return total
+    members = getattr(root, "__dict__", None)
+    if members is not None:
+        total += array_bytes(members, seen, depth + 1)
+    for slot in getattr(type(root), "__slots__", ()):
+        if hasattr(root, slot):
+            total += array_bytes(getattr(root, slot), seen, depth + 1)
+    return total
+
+
+def component_bytes(vo) -> dict[str, int]:
+    """Array bytes per attribute of the estimator, largest first (shared arrays count once,
+    for the component walked first: the optical flow, then the window, then the rest)."""
+    seen: set[int] = set()
+    order = ["flow", "window", "refinder", "triangulator", "selector", "_tracks"]
+    names = order + sorted(k for k in vars(vo) if k not in order)
+    sizes = {}
+    for name in names:
+        if not hasattr(vo, name):
+            continue
+        part = getattr(vo, name)
+        inner = vars(part) if hasattr(part, "__dict__") else {}
+        for key in inner:  # one level down: flow.pyramids, window.landmarks, ...
+            sizes[f"{name}.{key}"] = array_bytes(inner[key], seen)
+        sizes[name] = array_bytes(part, seen)
+    return dict(sorted(sizes.items(), key=lambda kv: -kv[1]))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("--max-frames", type=int, default=None)
+    parser.add_argument("--sequential", action="store_true", help="granite run --sequential")
+    parser.add_argument("--rerun", action="store_true", help="also write a rerun recording")
+    parser.add_argument("--warmup", type=Path, default=None,
+                        help="run the VO on this (small) dataset first and free it: the numba "
+                             "kernels' share is then a stage of its own")
+    parser.add_argument("--every", type=int, default=25, help="frames between array walks")
+    args = parser.parse_args()
+
+    sampler = RssSampler()
+    sampler.stage("import numpy, OpenCV, numba")
+    import cv2  # noqa: F401
+    import numba  # noqa: F401
+    sampler.stage("import granite")
+    from granite.cli.run_cmd import perform_run
+    from granite.estimator import runner
+    from granite.estimator.config import VoConfig
+    from granite.io import open_dataset
+    if args.warmup is not None:
+        sampler.stage(f"warm-up run on {args.warmup.name}, freed (numba kernels)")
+        runner.run_vo(open_dataset(args.warmup), VoConfig(), progress=False,
+                      concurrent=not args.sequential)  # returns its freed memory
+    sampler.stage("open the dataset")
+    dataset = open_dataset(args.dataset)
+    config = VoConfig()
+
+    captured: dict = {}
+    original = runner.MonocularVO
+
+    class CapturedVO(original):  # the run's estimator, for the array walk
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            captured["vo"] = weakref.ref(self)
+
+    runner.MonocularVO = CapturedVO
+    best = {"rss": 0.0, "frame": -1, "components": {}}
+    frames = {"n": 0}
+    original_run_vo = runner.run_vo
+
+    def run_vo(*a, on_frame=None, **k):
+        def hook(frame, output):
+            frames["n"] += 1
+            if frames["n"] == 1:
+                sampler.stage("VO (frames 2 ..), its memory freed at the end")
+            if frames["n"] % args.every == 0:
+                value = rss_mb()
+                if value > best["rss"]:
+                    best.update(rss=value, frame=frame.index,
+                                components=component_bytes(captured["vo"]()))
+            if on_frame is not None:
+                on_frame(frame, output)
+        result = original_run_vo(*a, on_frame=hook, **k)
+        sampler.stage("evaluation, run folder")
+        return result
+
+    import granite.cli.run_cmd as run_cmd
+    original_report = run_cmd.write_run_report
+
+    def write_run_report(*a, **k):
+        sampler.stage("report and plots (matplotlib)")
+        return original_report(*a, **k)
+
+    run_cmd.run_vo = run_vo
+    run_cmd.write_run_report = write_run_report
+    sampler.stage("first frame (numba kernels from the cache)")
+    with tempfile.TemporaryDirectory() as tmp:
+        rrd = Path(tmp) / "run.rrd" if args.rerun else None
+        perform_run(dataset, config, Path(tmp) / "run", rrd, False, 1.0, progress=False,
+                    concurrent=not args.sequential, max_frames=args.max_frames)
+    sampler.close()
+
+    print(f"granite run {args.dataset} ({frames['n']} frames, "
+          f"{'sequential' if args.sequential else 'concurrent'}{', rerun' if args.rerun else ''})")
+    print(f"{'stage':52s} {'end MB':>8s} {'peak MB':>8s} {'+MB':>7s}")
+    previous = None
+    for name, end, peak in sampler.stages:
+        if not name:
+            continue
+        grow = "" if previous is None else f"{end - previous:+7.0f}"
+        print(f"{name:52s} {end:8.0f} {peak:8.0f} {grow:>7s}")
+        previous = end
+    peak = max(p for _, _, p in sampler.stages)
+    print(f"peak resident size {peak:.0f} MB")
+    if best["frame"] >= 0:
+        total = sum(best["components"].values())
+        print(f"arrays held by the estimator at frame {best['frame']} "
+              f"(resident {best['rss']:.0f} MB): {total / 2**20:.1f} MB")
+        for name, size in best["components"].items():
+            if size >= 2**16:
+                print(f"  {name:30s} {size / 2**20:7.1f} MB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
