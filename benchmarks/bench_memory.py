@@ -1,9 +1,10 @@
 """Where the memory of a ``granite run`` goes (issue 15): resident memory per stage, and the
 arrays the VO holds at its largest resident size.
 
-Runs what ``granite run DATASET --out DIR [--rerun FILE]`` runs, in this process, with a thread
-that reads the resident set size (``VmRSS`` of ``/proc/self/status``) every 10 ms. Prints per
-stage the resident size at its end and its peak, the increment over the previous stage, and
+Runs what ``granite run DATASET --out DIR [--rerun FILE]`` runs, in this process. Prints per
+stage the resident size at its end and its peak (the kernel's high-water mark ``VmHWM``, reset
+at every stage: what ``/usr/bin/time`` reports for the whole run), the increment over the
+previous stage, and
 for the VO stage the numpy arrays reachable from the estimator (grouped by component: optical
 flow, sliding window, ...) at the sampled frame with the largest resident size. What the
 arrays do not explain is the allocator's slack, numba's runtime allocations (typed
@@ -20,7 +21,6 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-import threading
 import time
 import weakref
 from pathlib import Path
@@ -30,44 +30,42 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
-def rss_mb() -> float:
-    """Resident set size of this process in MB (``VmRSS``)."""
+def _status_mb(key: str) -> float:
     with open("/proc/self/status") as f:
         for line in f:
-            if line.startswith("VmRSS:"):
+            if line.startswith(key + ":"):
                 return int(line.split()[1]) / 1024.0
-    raise RuntimeError("no VmRSS in /proc/self/status")
+    raise RuntimeError(f"no {key} in /proc/self/status")
 
 
-class RssSampler:
-    """Samples the resident size every ``period`` seconds; ``stage(name)`` starts a stage."""
+def rss_mb() -> float:
+    """Resident set size of this process in MB (``VmRSS``)."""
+    return _status_mb("VmRSS")
 
-    def __init__(self, period: float = 0.01):
-        self.period = period
+
+class StagePeaks:
+    """Per-stage high-water marks of the resident size: ``stage(name)`` reads the peak since
+    the last stage (``VmHWM``) and resets it (``5`` into ``/proc/self/clear_refs``, Linux 4.0+),
+    so every short spike counts, as in ``/usr/bin/time``'s maximum resident size."""
+
+    def __init__(self):
         self.stages: list[tuple[str, float, float]] = []  # (name, end RSS, peak RSS)
-        self._name, self._peak = "start", rss_mb()
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._loop, daemon=True)
-        self._thread.start()
+        self._name = "start"
+        self._reset()
 
-    def _loop(self) -> None:
-        while not self._stop.wait(self.period):
-            value = rss_mb()
-            with self._lock:
-                self._peak = max(self._peak, value)
+    @staticmethod
+    def _reset() -> None:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
 
     def stage(self, name: str) -> None:
         """Close the running stage and start ``name``."""
-        value = rss_mb()
-        with self._lock:
-            self.stages.append((self._name, value, max(self._peak, value)))
-            self._name, self._peak = name, value
+        self.stages.append((self._name, rss_mb(), _status_mb("VmHWM")))
+        self._name = name
+        self._reset()
 
     def close(self) -> None:
         self.stage("")
-        self._stop.set()
-        self._thread.join()
 
 
 def array_bytes(root, seen: set[int], depth: int = 0) -> int:
@@ -137,7 +135,7 @@ def main() -> int:
     parser.add_argument("--every", type=int, default=25, help="frames between array walks")
     args = parser.parse_args()
 
-    sampler = RssSampler()
+    sampler = StagePeaks()
     sampler.stage("import numpy, OpenCV, numba")
     import cv2  # noqa: F401
     import numba  # noqa: F401

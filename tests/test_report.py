@@ -206,13 +206,15 @@ def test_trajectory_plot_draws_each_submap_aligned_on_the_ground_truth(tmp_path)
 
 
 def test_a_run_without_a_recording_does_not_load_rerun():
-    """``granite run`` without ``--rerun`` (its pipeline, run folder and report plots) never
-    imports rerun, which would cost ~44 MB of resident memory; the lazy
-    ``granite.visualization.RerunLogger`` still resolves when asked for."""
+    """``granite run`` without ``--rerun`` (the command line with every subcommand's parser,
+    the pipeline, run folder and report plots) never imports rerun, which would cost ~44 MB of
+    resident memory; the lazy ``granite.visualization.RerunLogger`` still resolves when asked
+    for."""
     import subprocess
     import sys
 
-    code = ("import sys, granite.cli.run_cmd, granite.visualization.report, granite.visualization as v; "
+    code = ("import sys, granite.cli.main as m, granite.cli.run_cmd, granite.visualization.report, "
+            "granite.visualization as v; m.build_parser(); "
             "print('rerun' in sys.modules, end=' '); v.RerunLogger; print('rerun' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "True"]

@@ -247,3 +247,36 @@ def test_scale_unobservable_marks_frames_whose_window_has_no_scale():
     assert scale_unobservable(diag(reason=NO_SCALE_ANCHOR)) == 1.0
     assert scale_unobservable(diag(reason="fewer than 3 keyframes")) is None
     assert scale_unobservable(diag()) is None
+
+
+def test_final_landmarks_are_each_frames_records_sent_in_chunks(tmp_path, monkeypatch):
+    """The landmarks a run view sends when it finishes (spooled to temporary files while the
+    run goes, sent a few frames per call) are, frame for frame, the records' world points
+    (float32, no ground truth: identity alignment) in their inverse-distance colours, across
+    chunk boundaries and with empty frames between."""
+    from granite.visualization import run_view
+
+    monkeypatch.setattr(run_view, "SEND_FRAMES", 3)
+    rng = np.random.default_rng(4)
+    n = 8
+    counts = [5, 0, 7, 1, 0, 4, 9, 2]
+    records = [FrameRecord(i, 0.05 * i, keyframe_ids=(max(0, i - 1), i),
+                           landmarks_w=rng.normal(size=(c, 3)).astype(np.float32),
+                           landmarks_inverse_distance=rng.uniform(0, 1, c).astype(np.float32))
+               for i, c in enumerate(counts)]
+    view = run_view.RunView("chunks", None, None, tmp_path / "v.rrd")
+    for r in records:
+        view.log_frame(r, None, FrameDiagnostics(r.timestamp, r.index, 0, "tracking"))
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 0, 3] = np.arange(n)
+    view.finish(Trajectory(np.array([r.timestamp for r in records]), poses, np.zeros(n, np.int64)))
+    table = rr.dataframe.load_recording(str(tmp_path / "v.rrd")).view(
+        index="frame", contents="/world/landmarks/**").select().read_all()
+    by_frame = dict(zip(_column(table, "frame"), zip(_column(table, "/world/landmarks:Position3D"),
+                                                      _column(table, "/world/landmarks:Color"))))
+    for r in records:
+        points, colors = by_frame[r.index]
+        np.testing.assert_array_equal(np.array(points, np.float32).reshape(-1, 3), r.landmarks_w)
+        expected = inverse_distance_colors(r.landmarks_inverse_distance, 1.0)
+        packed = [int.from_bytes(bytes([*c, 255]), "big") for c in expected]
+        assert list(colors) == packed

@@ -10,8 +10,6 @@ from granite.errors import InputError
 from granite.estimator.diagnostics import read_diagnostics
 from granite.estimator.records import read_records
 from granite.io import open_dataset, read_estimate
-from granite.visualization.rerun_logger import recording_path
-from granite.visualization.run_view import RunView
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -71,6 +69,11 @@ def run(args) -> int:
     posed = [d for d in diagnostics if d.state != "skipped"]
     if len(records) != len(diagnostics) or len(trajectory) not in (len(posed), len(diagnostics)):
         raise InputError("trajectory, diagnostics and records disagree on the number of frames", run_dir)
+    # rerun is imported here, not with the module: every granite command parses its arguments
+    # through this module, and importing rerun costs ~44 MB (docs/architecture.md, "Memory")
+    from granite.visualization.rerun_logger import recording_path
+    from granite.visualization.run_view import RunView
+
     rrd = recording_path(args.rerun, args.spawn, run_dir / "recording.rrd")
     view = RunView(f"granite-view-{dataset.name}", dataset.calibration, dataset.ground_truth, rrd, args.spawn)
     try:

@@ -6,12 +6,16 @@ they come. When the run ends, the estimate is Sim(3)-aligned to the ground truth
 (the paper's Fig. 3) and the aligned camera, the window's keyframes and landmarks and the
 aligned trajectory are logged for every frame on the same timeline, and, with ground truth,
 the running relative scale error (``plots/relative_scale_error``, over ``scale_delta`` seconds;
-:mod:`granite.evaluation.scale_drift`).
+:mod:`granite.evaluation.scale_drift`). Until then the window landmarks of every frame wait in
+temporary files (:class:`LandmarkSpool`) and are sent in chunks of frames, so a recording's
+memory does not grow with the run's length.
 """
 
 from __future__ import annotations
 
+import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +58,43 @@ def _aligned_pose(sim, T_w_c: np.ndarray) -> np.ndarray:
     return T
 
 
+class LandmarkSpool:
+    """The window landmarks of every frame (float32 world points (M_i, 3) and inverse
+    distances (M_i,), as ``landmarks.npz`` stores them) in two anonymous temporary files,
+    read back frame by frame in the order they were appended."""
+
+    def __init__(self):
+        self._xyz = tempfile.TemporaryFile()
+        self._inverse_distance = tempfile.TemporaryFile()
+        self.counts: list[int] = []
+
+    def append(self, xyz: np.ndarray, inverse_distance: np.ndarray) -> None:
+        xyz = np.ascontiguousarray(xyz, dtype=np.float32).reshape(-1, 3)
+        inverse_distance = np.ascontiguousarray(inverse_distance, dtype=np.float32).reshape(-1)
+        self._xyz.write(xyz.tobytes())
+        self._inverse_distance.write(inverse_distance.tobytes())
+        self.counts.append(len(inverse_distance))
+
+    def frames(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """``(xyz, inverse_distance)`` of each appended frame, in order."""
+        self._xyz.flush()
+        self._inverse_distance.flush()
+        self._xyz.seek(0)
+        self._inverse_distance.seek(0)
+        for count in self.counts:
+            xyz = np.frombuffer(self._xyz.read(12 * count), dtype=np.float32).reshape(count, 3)
+            yield xyz, np.frombuffer(self._inverse_distance.read(4 * count), dtype=np.float32)
+
+    def close(self) -> None:
+        self._xyz.close()
+        self._inverse_distance.close()
+
+
+#: Frames of landmarks per ``send_columns`` call when a run view finishes (bounds the memory
+#: of the final 3D content: ~1 M landmark rows over the 60 s spiral at 640x480).
+SEND_FRAMES = 100
+
+
 def scale_unobservable(diag: FrameDiagnostics) -> float | None:
     """1 where Λ_scaledrift found no scale information in the window
     (:attr:`FrameDiagnostics.no_scale_information`), 0 where Λ is defined, None where neither
@@ -83,7 +124,10 @@ class RunView:
         self.ground_truth = ground_truth
         if ground_truth is not None:
             self.log.log_trajectory("world/groundtruth", ground_truth.positions, GROUNDTRUTH_COLOR)
-        self._records: list[FrameRecord] = []
+        #: (frame index, timestamp, window keyframe ids) of every logged frame; its landmarks
+        #: are in ``self._landmarks``
+        self._frames: list[tuple[int, float, tuple[int, ...]]] = []
+        self._landmarks = LandmarkSpool()
         self.startup_seconds = time.perf_counter() - start
 
     def log_frame(self, record: FrameRecord, image: np.ndarray | None, diag: FrameDiagnostics,
@@ -113,7 +157,8 @@ class RunView:
         unobservable = scale_unobservable(diag)
         if unobservable is not None:
             log.log_scalar("scale_unobservable", unobservable)
-        self._records.append(record)
+        self._frames.append((record.index, record.timestamp, tuple(record.keyframe_ids)))
+        self._landmarks.append(record.landmarks_w, record.landmarks_inverse_distance)
         self.seconds += time.perf_counter() - start
 
     def finish(self, trajectory: Trajectory) -> None:
@@ -127,36 +172,45 @@ class RunView:
             if int(sub[k]) in sims:
                 positions[k] = _apply(sims[int(sub[k])], trajectory.poses[k, :3, 3][None])[0]
         self.log.log_trajectory("world/estimate", positions, ESTIMATE_COLOR)
-        index_row = {r.index: row.get(float(r.timestamp)) for r in self._records}
+        index_row = {index: row.get(float(stamp)) for index, stamp, _ in self._frames}
         scale_error = self._scale_errors(trajectory, sims)
         finite = positions[np.all(np.isfinite(positions), axis=1)]
         extent = float(np.ptp(finite, axis=0).max()) if len(finite) else 1.0
         frustum_depth = max(0.02 * extent, 0.05)
-        frames, stamps, cameras, keyframes, points, colors = [], [], [], [], [], []
-        for record in self._records:
-            k = index_row[record.index]
+        frames, stamps, cameras, keyframes = [], [], [], []
+        chunk: tuple[list, list, list, list] = ([], [], [], [])  # frames, stamps, points, colours
+        for (index, stamp, keyframe_ids), (xyz, inverse_distance) in zip(self._frames,
+                                                                         self._landmarks.frames()):
+            k = index_row[index]
             if k is None or int(sub[k]) not in sims:
                 continue
             sim = sims[int(sub[k])]
-            frames.append(record.index)
-            stamps.append(record.timestamp)
+            frames.append(index)
+            stamps.append(stamp)
             cameras.append(_aligned_pose(sim, trajectory.poses[k]))
-            kf_rows = [index_row.get(f) for f in record.keyframe_ids]
+            kf_rows = [index_row.get(f) for f in keyframe_ids]
             keyframes.append(np.array([_aligned_pose(sim, trajectory.poses[r]) for r in kf_rows
                                        if r is not None and int(sub[r]) == int(sub[k])]).reshape(-1, 4, 4))
-            points.append(_apply(sim, record.landmarks_w) if len(record.landmarks_w) else np.zeros((0, 3)))
-            colors.append(inverse_distance_colors(record.landmarks_inverse_distance / sim[0], self.d_max))
-            if float(record.timestamp) in scale_error:
-                self.log.add_scalar("relative_scale_error", record.index,
-                                    self.log.elapsed(record.timestamp), scale_error[float(record.timestamp)])
+            chunk[0].append(index)
+            chunk[1].append(stamp)
+            chunk[2].append(_apply(sim, xyz) if len(xyz) else np.zeros((0, 3)))
+            chunk[3].append(inverse_distance_colors(inverse_distance / sim[0], self.d_max))
+            if len(chunk[0]) == SEND_FRAMES:
+                self.log.send_points3d("world/landmarks", *chunk, radius=0.04)
+                chunk = ([], [], [], [])
+            if float(stamp) in scale_error:
+                self.log.add_scalar("relative_scale_error", index,
+                                    self.log.elapsed(stamp), scale_error[float(stamp)])
+        self.log.send_points3d("world/landmarks", *chunk, radius=0.04)
         self.log.send_camera_poses(frames, stamps, np.array(cameras).reshape(-1, 4, 4))
         self.log.send_keyframes(frames, stamps, keyframes, frustum_depth)
-        self.log.send_points3d("world/landmarks", frames, stamps, points, colors, radius=0.04)
+        self._landmarks.close()
         self.log.close()
         self.seconds += time.perf_counter() - start
 
     def discard(self) -> None:
         """Give up the recording after an error: no file is written."""
+        self._landmarks.close()
         self.log.discard()
 
     def _scale_errors(self, trajectory: Trajectory, sims: dict) -> dict[float, float]:
