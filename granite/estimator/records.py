@@ -138,24 +138,32 @@ def write_records(path: str | Path, records: list[FrameRecord]) -> None:
     writer.close()
 
 
+def _rows_by_frame(tags: np.ndarray) -> dict[int, np.ndarray]:
+    """Row indices (ascending) of each frame index in a ``*_frame`` tag array."""
+    order = np.argsort(tags, kind="stable")
+    frames, starts = np.unique(tags[order], return_index=True)
+    ends = np.append(starts[1:], len(order))
+    return {int(f): order[a:b] for f, a, b in zip(frames.tolist(), starts.tolist(), ends.tolist())}
+
+
 def read_records(path: str | Path) -> list[FrameRecord]:
+    """The records of ``landmarks.npz`` (every array read once: an ``NpzFile`` decompresses a
+    member on each access)."""
     path = Path(path)
     try:
-        data = np.load(path)
-        frames = data["frame_index"]
-        times = data["frame_timestamp"]
-        groups = {}
-        for key, tag in (("track", "track_frame"), ("landmark", "landmark_frame"), ("keyframe", "keyframe_frame")):
-            order = data[tag]
-            groups[key] = {f: np.flatnonzero(order == f) for f in np.unique(order)}
+        with np.load(path) as data:
+            arrays = {name: data[name] for name, _, _ in _FIELDS}
+        groups = {key: _rows_by_frame(arrays[tag]) for key, tag in
+                  (("track", "track_frame"), ("landmark", "landmark_frame"), ("keyframe", "keyframe_frame"))}
         records = []
         empty = np.zeros(0, np.int64)
-        for f, t in zip(frames.tolist(), times.tolist()):
+        for f, t in zip(arrays["frame_index"].tolist(), arrays["frame_timestamp"].tolist()):
             tr, lm, kf = (groups[k].get(f, empty) for k in ("track", "landmark", "keyframe"))
             records.append(FrameRecord(
-                f, t, data["track_id"][tr], data["track_uv"][tr], data["track_level"][tr],
-                data["track_inverse_distance"][tr], tuple(data["keyframe_id"][kf].tolist()),
-                data["landmark_xyz"][lm].astype(np.float64), data["landmark_inverse_distance"][lm].astype(np.float64),
+                f, t, arrays["track_id"][tr], arrays["track_uv"][tr], arrays["track_level"][tr],
+                arrays["track_inverse_distance"][tr], tuple(arrays["keyframe_id"][kf].tolist()),
+                arrays["landmark_xyz"][lm].astype(np.float64),
+                arrays["landmark_inverse_distance"][lm].astype(np.float64),
             ))
         return records
     except FileNotFoundError:
