@@ -61,11 +61,12 @@ def _aligned_pose(sim, T_w_c: np.ndarray) -> np.ndarray:
 class LandmarkSpool:
     """The window landmarks of every frame (float32 world points (M_i, 3) and inverse
     distances (M_i,), as ``landmarks.npz`` stores them) in two anonymous temporary files,
-    read back frame by frame in the order they were appended."""
+    read back frame by frame in the order they were appended. ``folder``: where the files live
+    (they have no name and vanish when closed; default the system's temporary folder)."""
 
-    def __init__(self):
-        self._xyz = tempfile.TemporaryFile()
-        self._inverse_distance = tempfile.TemporaryFile()
+    def __init__(self, folder: str | Path | None = None):
+        self._xyz = tempfile.TemporaryFile(dir=folder)
+        self._inverse_distance = tempfile.TemporaryFile(dir=folder)
         self.counts: list[int] = []
 
     def append(self, xyz: np.ndarray, inverse_distance: np.ndarray) -> None:
@@ -127,7 +128,8 @@ class RunView:
         #: (frame index, timestamp, window keyframe ids) of every logged frame; its landmarks
         #: are in ``self._landmarks``
         self._frames: list[tuple[int, float, tuple[int, ...]]] = []
-        self._landmarks = LandmarkSpool()
+        # beside the recording (a folder already checked writable), else in the system's
+        self._landmarks = LandmarkSpool(None if rrd_path is None else Path(rrd_path).parent)
         self.startup_seconds = time.perf_counter() - start
 
     def log_frame(self, record: FrameRecord, image: np.ndarray | None, diag: FrameDiagnostics,
