@@ -21,13 +21,10 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-import time
 import weakref
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def _status_mb(key: str) -> float:
@@ -141,6 +138,7 @@ def main() -> int:
     import numba  # noqa: F401
     sampler.stage("import granite")
     from granite.cli.run_cmd import perform_run
+    from granite.errors import GraniteError
     from granite.estimator import runner
     from granite.estimator.config import VoConfig
     from granite.io import open_dataset
@@ -149,7 +147,11 @@ def main() -> int:
         runner.run_vo(open_dataset(args.warmup), VoConfig(), progress=False,
                       concurrent=not args.sequential)  # returns its freed memory
     sampler.stage("open the dataset")
-    dataset = open_dataset(args.dataset)
+    try:
+        dataset = open_dataset(args.dataset)
+    except GraniteError as error:
+        print(f"bench_memory.py: error: {error}", file=sys.stderr)
+        return 2
     config = VoConfig()
 
     captured: dict = {}
@@ -190,7 +192,8 @@ def main() -> int:
 
     run_cmd.run_vo = run_vo
     run_cmd.write_run_report = write_run_report
-    sampler.stage("first frame (numba kernels from the cache)")
+    sampler.stage("first frame (numba kernels from the cache"
+                  + ("; rerun)" if args.rerun else ")"))
     with tempfile.TemporaryDirectory() as tmp:
         rrd = Path(tmp) / "run.rrd" if args.rerun else None
         perform_run(dataset, config, Path(tmp) / "run", rrd, False, 1.0, progress=False,

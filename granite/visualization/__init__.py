@@ -1,7 +1,7 @@
 """rerun views of datasets, frontend tracks and VO runs (see the README's entity layout), and the
 run reports' plots (:mod:`granite.visualization.report`).
 
-``RerunLogger`` is imported on first use: importing rerun (and pyarrow) costs about 46 MB of
+``RerunLogger`` is imported on first use: importing rerun (and pyarrow) costs about 44 MB of
 resident memory, which a run without a recording (``granite run`` without ``--rerun``, its
 report's plots) does not pay (docs/architecture.md, "Memory").
 """
