@@ -138,8 +138,14 @@ def write_records(path: str | Path, records: list[FrameRecord]) -> None:
     writer.close()
 
 
-def _rows_by_frame(tags: np.ndarray) -> dict[int, np.ndarray]:
-    """Row indices (ascending) of each frame index in a ``*_frame`` tag array."""
+def _rows_by_frame(tags: np.ndarray) -> dict[int, slice | np.ndarray]:
+    """The rows of each frame index in a ``*_frame`` tag array: a slice when the tags are in
+    the writer's order (each frame's rows in one block, so the records are views of the
+    arrays, no copies), else the row indices in ascending order."""
+    if np.all(tags[1:] >= tags[:-1]):
+        frames, starts = np.unique(tags, return_index=True)
+        ends = np.append(starts[1:], len(tags))
+        return {int(f): slice(a, b) for f, a, b in zip(frames.tolist(), starts.tolist(), ends.tolist())}
     order = np.argsort(tags, kind="stable")
     frames, starts = np.unique(tags[order], return_index=True)
     ends = np.append(starts[1:], len(order))
@@ -147,8 +153,9 @@ def _rows_by_frame(tags: np.ndarray) -> dict[int, np.ndarray]:
 
 
 def read_records(path: str | Path) -> list[FrameRecord]:
-    """The records of ``landmarks.npz`` (every array read once: an ``NpzFile`` decompresses a
-    member on each access)."""
+    """The records of ``landmarks.npz``, their arrays views of the file's (each array is read
+    once: an ``NpzFile`` decompresses a member on every access); the landmarks in float32, as
+    stored and as :meth:`FrameRecord.from_output` keeps them."""
     path = Path(path)
     try:
         with np.load(path) as data:
@@ -156,14 +163,13 @@ def read_records(path: str | Path) -> list[FrameRecord]:
         groups = {key: _rows_by_frame(arrays[tag]) for key, tag in
                   (("track", "track_frame"), ("landmark", "landmark_frame"), ("keyframe", "keyframe_frame"))}
         records = []
-        empty = np.zeros(0, np.int64)
+        empty = slice(0, 0)
         for f, t in zip(arrays["frame_index"].tolist(), arrays["frame_timestamp"].tolist()):
             tr, lm, kf = (groups[k].get(f, empty) for k in ("track", "landmark", "keyframe"))
             records.append(FrameRecord(
                 f, t, arrays["track_id"][tr], arrays["track_uv"][tr], arrays["track_level"][tr],
                 arrays["track_inverse_distance"][tr], tuple(arrays["keyframe_id"][kf].tolist()),
-                arrays["landmark_xyz"][lm].astype(np.float64),
-                arrays["landmark_inverse_distance"][lm].astype(np.float64),
+                arrays["landmark_xyz"][lm], arrays["landmark_inverse_distance"][lm],
             ))
         return records
     except FileNotFoundError:
