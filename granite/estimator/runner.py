@@ -241,7 +241,7 @@ def return_freed_memory() -> None:
     gc.collect()
     try:
         ctypes.CDLL(None).malloc_trim(0)
-    except (AttributeError, OSError):
+    except (AttributeError, OSError, TypeError):  # no glibc (TypeError: Windows' CDLL(None))
         pass
 
 
