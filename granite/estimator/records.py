@@ -142,14 +142,11 @@ def _rows_by_frame(tags: np.ndarray) -> dict[int, slice | np.ndarray]:
     """The rows of each frame index in a ``*_frame`` tag array: a slice when the tags are in
     the writer's order (each frame's rows in one block, so the records are views of the
     arrays, no copies), else the row indices in ascending order."""
-    if np.all(tags[1:] >= tags[:-1]):
-        frames, starts = np.unique(tags, return_index=True)
-        ends = np.append(starts[1:], len(tags))
-        return {int(f): slice(a, b) for f, a, b in zip(frames.tolist(), starts.tolist(), ends.tolist())}
-    order = np.argsort(tags, kind="stable")
-    frames, starts = np.unique(tags[order], return_index=True)
-    ends = np.append(starts[1:], len(order))
-    return {int(f): order[a:b] for f, a, b in zip(frames.tolist(), starts.tolist(), ends.tolist())}
+    order = None if np.all(tags[1:] >= tags[:-1]) else np.argsort(tags, kind="stable")
+    frames, starts = np.unique(tags if order is None else tags[order], return_index=True)
+    ends = np.append(starts[1:], len(tags))
+    return {int(f): slice(a, b) if order is None else order[a:b]
+            for f, a, b in zip(frames.tolist(), starts.tolist(), ends.tolist())}
 
 
 def read_records(path: str | Path) -> list[FrameRecord]:
