@@ -17,3 +17,9 @@ __version__ = "0.1.0"
 from granite._numba_cache import configure_numba_cache as _configure_numba_cache  # noqa: E402
 
 _configure_numba_cache()
+
+# Kernels loaded from that cache keep their LLVM IR as bitcode, parsed only if another kernel
+# links them (granite/_numba_linking.py): ~54 MB less resident memory in a VO run.
+from granite._numba_linking import install_when_numba_loads as _lazy_linking_ir  # noqa: E402
+
+_lazy_linking_ir()
