@@ -73,6 +73,29 @@ def configure_numba_cache(package_dir: Path = PACKAGE_DIR) -> Path:
     return cache_dir
 
 
+def has_cached_kernels(cache_dir: Path | None = None) -> bool:
+    """Whether numba's cache folder (default: the one :func:`configure_numba_cache` set) holds
+    any compiled kernel (an index file ``*.nbi``)."""
+    folder = cache_dir or os.environ.get("NUMBA_CACHE_DIR")
+    if not folder:
+        return False
+    try:
+        return next(Path(folder).rglob("*.nbi"), None) is not None
+    except OSError:
+        return False
+
+
+def compile_notice(command: str) -> str | None:
+    """A one-line note for the user when numba has no cached kernel for these sources yet:
+    the command's first frames then wait for the compilation (the VO's first run after an
+    install or an update; cached for the following runs). None when kernels are cached."""
+    if has_cached_kernels():
+        return None
+    return (f"{command}: first run of this granite version: numba compiles the kernels first "
+            f"(1-2 minutes on two cores, the first frames wait for it), cached in "
+            f"{os.environ.get('NUMBA_CACHE_DIR')} for the following runs")
+
+
 def _prune(current: Path) -> None:
     """Remove caches of other source versions beyond the ``_KEEP`` most recently used ones,
     once they are ``_MIN_AGE_S`` old (another process may still use a recent one)."""

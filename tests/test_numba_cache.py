@@ -90,3 +90,32 @@ def test_freshly_compiled_and_cached_backend_kernels_give_the_same_bits(tmp_path
         assert r.returncode == 0, r.stderr[-2000:]
     assert runs[0].stdout.strip() == runs[1].stdout.strip()
     assert any(p.suffix == ".nbi" for p in (tmp_path / "cache").rglob("*"))  # really cached
+
+
+def test_has_cached_kernels_sees_a_compiled_kernel_only(tmp_path):
+    from granite._numba_cache import compile_notice, has_cached_kernels
+
+    code = textwrap.dedent("""
+        import os, sys
+        from pathlib import Path
+        import granite  # points NUMBA_CACHE_DIR at GRANITE_NUMBA_CACHE_ROOT/<hash>
+        from granite._numba_cache import compile_notice, has_cached_kernels
+        before = has_cached_kernels(), compile_notice("granite run") is not None
+        import numba
+        @numba.njit(cache=True)
+        def twice(x):
+            return 2 * x
+        twice(3)
+        print(before, (has_cached_kernels(), compile_notice("granite run") is not None))
+        print(os.environ["NUMBA_CACHE_DIR"])
+    """)
+    script = tmp_path / "compile_one.py"  # numba caches kernels of files only
+    script.write_text(code)
+    env = {**os.environ, "GRANITE_NUMBA_CACHE_ROOT": str(tmp_path / "cache")}
+    done = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    flags, folder = done.stdout.strip().splitlines()
+    assert flags == "(False, True) (True, False)"
+    assert Path(folder).is_relative_to(tmp_path / "cache")
+    assert has_cached_kernels(Path(folder)) and not has_cached_kernels(tmp_path / "empty")

@@ -172,3 +172,16 @@ def test_empty_or_negative_frame_range_exits_2_before_any_work(capsys, dataset, 
     assert code == 2 and out == ""
     assert err.count("\n") == 1 and err.startswith("granite track: error:") and message in err
     assert not (tmp_path / "x.csv").exists()
+
+
+@pytest.mark.parametrize("cached", [False, True])
+def test_a_first_run_says_that_numba_compiles(capsys, monkeypatch, dataset, tmp_path, cached):
+    import granite._numba_cache
+
+    monkeypatch.setattr(granite._numba_cache, "has_cached_kernels", lambda cache_dir=None: cached)
+    code, _, err = run_cli(capsys, dataset, "--out", tmp_path / "tracks.csv")
+    assert code == 0, err
+    notices = [line for line in err.splitlines() if "numba compiles the kernels" in line]
+    assert len(notices) == (0 if cached else 1)
+    if notices:
+        assert notices[0].startswith("granite track: first run")

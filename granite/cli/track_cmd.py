@@ -101,6 +101,7 @@ def load_config(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from granite._numba_cache import compile_notice
     from granite.io import check_writable, open_dataset
     from granite.optical_flow import FrameRejectedWarning, FrameToFrameOpticalFlow
 
@@ -126,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
     total = min(len(dataset), args.stop if args.stop is not None else len(dataset)) - args.start
     bar = tqdm(frames, total=total, unit="frame", disable=args.quiet, file=sys.stderr,
                desc=f"track {dataset.name}")
+    if not args.quiet and (notice := compile_notice("granite track")):
+        bar.write(notice, file=sys.stderr)
     for frame in bar:
         if frame.image is None:
             _warn(bar, f"frame {frame.index} (t={frame.timestamp:.6f}): {frame.error}; no tracks")

@@ -26,6 +26,7 @@ from __future__ import annotations
 import ctypes
 import gc
 import json
+import sys
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +34,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from granite._numba_cache import compile_notice
 from granite.errors import InputError
 from granite.estimator.config import VoConfig
 from granite.estimator.diagnostics import FrameDiagnostics, write_diagnostics
@@ -170,6 +172,8 @@ def run_vo(
     interrupted = False
     n = len(dataset) if max_frames is None else min(max_frames, len(dataset))
     bar = tqdm(total=n, desc=f"granite run {dataset.name}", unit="frame", disable=not progress)
+    if progress and (notice := compile_notice("granite run")):
+        bar.write(notice, file=sys.stderr)
     tally = WarningTally(notify)
     pipeline = VoPipeline(vo, concurrent)
     outputs = pipeline.run(dataset.frames(0, n))
