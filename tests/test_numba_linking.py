@@ -5,6 +5,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 KERNEL_MODULE = textwrap.dedent(
     """
     import numba
@@ -26,7 +28,8 @@ FIRST_RUN = textwrap.dedent(
 
 SECOND_RUN = textwrap.dedent(
     """
-    import granite
+    import {first}
+    import {second}
     import numba
     import cached_kernel
 
@@ -53,11 +56,13 @@ def _run(code, tmp_path):
                           text=True, timeout=300)
 
 
-def test_a_cache_loaded_kernel_keeps_bitcode_and_links_into_a_new_kernel(tmp_path):
+@pytest.mark.parametrize("first, second", [("granite", "numba"), ("numba", "granite")])
+def test_a_cache_loaded_kernel_keeps_bitcode_and_links_into_a_new_kernel(tmp_path, first, second):
+    """Whether numba was imported before granite or after it."""
     (tmp_path / "cached_kernel.py").write_text(KERNEL_MODULE)
-    first = _run(FIRST_RUN, tmp_path)
-    assert first.returncode == 0, first.stderr
-    assert first.stdout.strip() == "10.0"
-    second = _run(SECOND_RUN, tmp_path)
+    compiled = _run(FIRST_RUN, tmp_path)
+    assert compiled.returncode == 0, compiled.stderr
+    assert compiled.stdout.strip() == "10.0"
+    second = _run(SECOND_RUN.format(first=first, second=second), tmp_path)
     assert second.returncode == 0, second.stderr
     assert second.stdout.strip() == "ok"
