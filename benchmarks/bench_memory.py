@@ -219,7 +219,30 @@ def main() -> int:
         for name, size in best["components"].items():
             if size >= 2**16:
                 print(f"  {name:30s} {size / 2**20:7.1f} MB")
+    print(numba_libraries_line())
     return 0
+
+
+def numba_libraries_line() -> str:
+    """One line on numba's code libraries in this process: how many were loaded from the
+    cache or compiled here, and the LLVM bitcode kept for linking instead of parsed IR
+    (granite/_numba_linking.py)."""
+    import gc
+
+    from numba.core import codegen
+
+    from granite import _numba_linking
+
+    libraries = [o for o in gc.get_objects() if type(o) is codegen.JITCodeLibrary]
+    kept = [o.__dict__.get(_numba_linking._BITCODE) for o in libraries]
+    loaded = sum(b is not None or (o._shared_module is None and o._disable_inspection)
+                 for o, b in zip(libraries, kept))
+    parsed = sum(o._shared_module is not None for o in libraries)
+    patched = getattr(codegen.CPUCodeLibrary, _numba_linking._MARK, False)
+    return (f"numba: {len(libraries)} code libraries ({loaded} from the cache, "
+            f"{len(libraries) - loaded} compiled here), {sum(len(b) for b in kept if b) / 2**20:.1f} MB "
+            f"of bitcode kept for linking, {parsed} with parsed IR "
+            f"(lazy linking IR {'on' if patched else 'off'})")
 
 
 if __name__ == "__main__":
