@@ -203,3 +203,51 @@ def test_default_frontend_keeps_the_map_through_the_long_turn(tmp_path):
     rel_gt = np.linalg.inv(poses[first][:3, :3]) @ poses[-1][:3, :3]
     err = np.degrees(np.arccos(np.clip((np.trace(rel_est.T @ rel_gt) - 1) / 2, -1, 1)))
     assert err < 1.0, err
+
+
+
+BLAS_CHECK = """
+import sys
+import numpy  # imported first, as in a script or a notebook: its BLAS keeps its threads
+from threadpoolctl import threadpool_info
+from granite.estimator.config import VoConfig
+from granite.estimator.pipeline import VoPipeline
+from granite.estimator.vo import MonocularVO
+from granite.io import open_dataset
+
+def blas_threads():
+    return sorted({lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"})
+
+dataset = open_dataset(sys.argv[1])
+before = blas_threads()
+for concurrent in (False, True):
+    vo = MonocularVO(dataset.calibration.camera(), VoConfig())
+    seen = set()
+    for _ in VoPipeline(vo, concurrent).run(dataset.frames(0, 12)):
+        seen.update(blas_threads())
+    print(before, sorted(seen), blas_threads())
+"""
+
+
+def test_the_vo_loop_runs_blas_on_one_thread_and_restores_it(flight_dataset, tmp_path):
+    """Two BLAS threads spinning beside the pipeline's threads halved the VO's speed through
+    the Python API (granite's command line sets OPENBLAS_NUM_THREADS=1 before numpy loads; a
+    script that imported numpy first kept two threads). Both modes run with one and give the
+    process its count back."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    script = tmp_path / "blas_check.py"
+    script.write_text(BLAS_CHECK)
+    done = subprocess.run([sys.executable, str(script), str(flight_dataset)], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.strip().splitlines()
+    assert len(lines) == 2
+    before = lines[0].split("] ")[0] + "]"
+    if before == "[1]":
+        pytest.skip("BLAS runs one thread on this machine anyway")
+    for line in lines:  # sequential, concurrent
+        assert line == f"{before} [1] {before}", line

@@ -77,6 +77,7 @@ from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
+from threadpoolctl import threadpool_limits
 
 from granite.estimator.vo import FrameOutput, MonocularVO
 
@@ -123,12 +124,14 @@ class VoPipeline:
         return out
 
     def run(self, frames: Iterable) -> Iterator[tuple[object, FrameOutput]]:
-        if not self.concurrent:
-            vo = self.vo
-            for frame in frames:
-                yield frame, vo.process(frame.index, frame.timestamp, frame.image)
-            return
-        yield from self._run_concurrent(frames)
+        """Process ``frames`` (both modes with BLAS on one thread: :func:`blas_single_threaded`)."""
+        with blas_single_threaded():
+            if not self.concurrent:
+                vo = self.vo
+                for frame in frames:
+                    yield frame, vo.process(frame.index, frame.timestamp, frame.image)
+                return
+            yield from self._run_concurrent(frames)
 
     # ------------------------------------------------------------------ concurrent
     def _reader(self, frames: Iterable, out: queue.Queue, stop: threading.Event) -> None:
@@ -286,6 +289,36 @@ class VoPipeline:
 _opencv_lock = threading.Lock()
 _opencv_users = 0  # blocks of opencv_single_threaded() open now, in any thread
 _opencv_previous = 0  # OpenCV's thread count before the first of them
+
+
+_blas_lock = threading.Lock()
+_blas_users = 0  # blocks of blas_single_threaded() open now, in any thread
+_blas_limiter = None  # threadpoolctl's limiter of the first of them (restores the counts)
+
+
+@contextlib.contextmanager
+def blas_single_threaded():
+    """The BLAS libraries loaded (numpy's and scipy's OpenBLAS) use one thread inside the
+    block. The VO's matrices are small (at most a few hundred rows): with a second BLAS thread
+    spinning beside the pipeline's threads, the 640x480 spiral ran at 29 frames/s through the
+    Python API against 57-64 with one (``granite``'s command line sets
+    ``OPENBLAS_NUM_THREADS=1`` before numpy loads; a script or notebook that imported numpy
+    first did not get it). Process-wide, like :func:`opencv_single_threaded`: overlapping
+    blocks share it, and the thread counts from before the first are restored when the last
+    ends."""
+    global _blas_users, _blas_limiter
+    with _blas_lock:
+        if _blas_users == 0:
+            _blas_limiter = threadpool_limits(limits=1, user_api="blas")
+        _blas_users += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas_users -= 1
+            if _blas_users == 0:
+                _blas_limiter.restore_original_limits()
+                _blas_limiter = None
 
 
 @contextlib.contextmanager
