@@ -73,9 +73,15 @@ def configure_numba_cache(package_dir: Path = PACKAGE_DIR) -> Path:
     return cache_dir
 
 
-def has_cached_kernels(cache_dir: Path | None = None) -> bool:
-    """Whether numba's cache folder (default: the one :func:`configure_numba_cache` set) holds
-    any compiled kernel (an index file ``*.nbi``)."""
+def has_cached_kernels(cache_dir: Path | None = None, kernels=()) -> bool:
+    """Whether numba's cache holds compiled kernels: with ``kernels`` (numba dispatchers with
+    ``cache=True``), whether each of them has an index file (``*.nbi``) there; without, whether
+    the cache folder (default: the one :func:`configure_numba_cache` set) holds any."""
+    if kernels:
+        try:
+            return all(Path(k._cache._cache_file._index_path).is_file() for k in kernels)
+        except (AttributeError, OSError):  # not numba's cached dispatchers as expected
+            pass
     folder = cache_dir or os.environ.get("NUMBA_CACHE_DIR")
     if not folder:
         return False
@@ -85,11 +91,12 @@ def has_cached_kernels(cache_dir: Path | None = None) -> bool:
         return False
 
 
-def compile_notice(command: str) -> str | None:
-    """A one-line note for the user when numba has no cached kernel for these sources yet:
-    the command's first frames then wait for the compilation (the VO's first run after an
-    install or an update; cached for the following runs). None when kernels are cached."""
-    if has_cached_kernels():
+def compile_notice(command: str, kernels=()) -> str | None:
+    """A one-line note for the user when numba has not cached ``kernels`` (the command's
+    largest; any kernel if none given) for these sources yet: the command's first frames then
+    wait for the compilation (the first run after an install or an update; cached for the
+    following runs). None when they are cached."""
+    if has_cached_kernels(kernels=kernels):
         return None
     return (f"{command}: first run of this granite version: numba compiles the kernels first "
             f"(1-2 minutes on two cores, the first frames wait for it), cached in "

@@ -100,13 +100,18 @@ def test_has_cached_kernels_sees_a_compiled_kernel_only(tmp_path):
         from pathlib import Path
         import granite  # points NUMBA_CACHE_DIR at GRANITE_NUMBA_CACHE_ROOT/<hash>
         from granite._numba_cache import compile_notice, has_cached_kernels
-        before = has_cached_kernels(), compile_notice("granite run") is not None
         import numba
         @numba.njit(cache=True)
         def twice(x):
             return 2 * x
+        @numba.njit(cache=True)
+        def thrice(x):
+            return 3 * x
+        before = has_cached_kernels(), compile_notice("granite run") is not None
         twice(3)
-        print(before, (has_cached_kernels(), compile_notice("granite run") is not None))
+        print(before, (has_cached_kernels(), compile_notice("granite run") is not None),
+              (has_cached_kernels(kernels=(twice,)), has_cached_kernels(kernels=(twice, thrice)),
+               compile_notice("granite run", (thrice,)) is not None))
         print(os.environ["NUMBA_CACHE_DIR"])
     """)
     script = tmp_path / "compile_one.py"  # numba caches kernels of files only
@@ -116,6 +121,6 @@ def test_has_cached_kernels_sees_a_compiled_kernel_only(tmp_path):
                           timeout=300)
     assert done.returncode == 0, done.stderr
     flags, folder = done.stdout.strip().splitlines()
-    assert flags == "(False, True) (True, False)"
+    assert flags == "(False, True) (True, False) (True, False, True)"
     assert Path(folder).is_relative_to(tmp_path / "cache")
     assert has_cached_kernels(Path(folder)) and not has_cached_kernels(tmp_path / "empty")

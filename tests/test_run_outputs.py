@@ -260,11 +260,11 @@ def test_view_reads_a_run_folder_with_skipped_frames(run_dir, tmp_path, capsys):
 def test_a_first_run_says_that_numba_compiles(flight, tmp_path, capsys, monkeypatch):
     import granite._numba_cache
 
-    monkeypatch.setattr(granite._numba_cache, "has_cached_kernels", lambda cache_dir=None: False)
+    monkeypatch.setattr(granite._numba_cache, "has_cached_kernels", lambda cache_dir=None, kernels=(): False)
     assert main(["run", str(flight[0]), "--out", str(tmp_path / "run"), "--max-frames", "5"]) == 0
     err = capsys.readouterr().err
     notices = [line for line in err.splitlines() if "numba compiles the kernels" in line]
     assert len(notices) == 1 and notices[0].startswith("granite run: first run")
-    monkeypatch.setattr(granite._numba_cache, "has_cached_kernels", lambda cache_dir=None: True)
+    monkeypatch.setattr(granite._numba_cache, "has_cached_kernels", lambda cache_dir=None, kernels=(): True)
     assert main(["run", str(flight[0]), "--out", str(tmp_path / "run2"), "--max-frames", "5"]) == 0
     assert "numba compiles" not in capsys.readouterr().err

@@ -178,7 +178,7 @@ def test_empty_or_negative_frame_range_exits_2_before_any_work(capsys, dataset, 
 def test_a_first_run_says_that_numba_compiles(capsys, monkeypatch, dataset, tmp_path, cached):
     import granite._numba_cache
 
-    monkeypatch.setattr(granite._numba_cache, "has_cached_kernels", lambda cache_dir=None: cached)
+    monkeypatch.setattr(granite._numba_cache, "has_cached_kernels", lambda cache_dir=None, kernels=(): cached)
     code, _, err = run_cli(capsys, dataset, "--out", tmp_path / "tracks.csv")
     assert code == 0, err
     notices = [line for line in err.splitlines() if "numba compiles the kernels" in line]

@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
 
     from granite._numba_cache import compile_notice
     from granite.io import check_writable, open_dataset
-    from granite.optical_flow import FrameRejectedWarning, FrameToFrameOpticalFlow
+    from granite.optical_flow import FrameRejectedWarning, FrameToFrameOpticalFlow, tracking
 
     suffix = args.out.suffix.lower()
     if suffix not in _FORMATS:
@@ -127,7 +127,8 @@ def run(args: argparse.Namespace) -> int:
     total = min(len(dataset), args.stop if args.stop is not None else len(dataset)) - args.start
     bar = tqdm(frames, total=total, unit="frame", disable=args.quiet, file=sys.stderr,
                desc=f"track {dataset.name}")
-    if not args.quiet and (notice := compile_notice("granite track")):
+    if not args.quiet and (notice := compile_notice(
+            "granite track", (tracking._track_passes_claimed, tracking._track_passes))):
         bar.write(notice, file=sys.stderr)
     for frame in bar:
         if frame.image is None:

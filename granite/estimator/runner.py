@@ -149,6 +149,16 @@ def check_dataset(dataset: Dataset) -> None:
         )
 
 
+def _largest_kernels() -> tuple:
+    """The VO's kernels that take longest to compile: when numba has not cached them, the run
+    starts with the compilation (:func:`granite._numba_cache.compile_notice`)."""
+    from granite.backend.reprojection import linearize_fused
+    from granite.backend.schur import schur_reduce
+    from granite.optical_flow import tracking
+
+    return (schur_reduce, tracking._track_passes_claimed, tracking._track_passes, linearize_fused)
+
+
 def run_vo(
     dataset: Dataset,
     config: VoConfig,
@@ -172,7 +182,7 @@ def run_vo(
     interrupted = False
     n = len(dataset) if max_frames is None else min(max_frames, len(dataset))
     bar = tqdm(total=n, desc=f"granite run {dataset.name}", unit="frame", disable=not progress)
-    if progress and (notice := compile_notice("granite run")):
+    if progress and (notice := compile_notice("granite run", _largest_kernels())):
         bar.write(notice, file=sys.stderr)
     tally = WarningTally(notify)
     pipeline = VoPipeline(vo, concurrent)
