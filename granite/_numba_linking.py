@@ -21,7 +21,6 @@ numba is imported, so that importing granite does not import numba.
 from __future__ import annotations
 
 import importlib.abc
-import importlib.machinery
 import sys
 
 _PATCHED_MODULE = "numba.core.codegen"

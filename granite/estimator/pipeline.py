@@ -73,7 +73,7 @@ import queue
 import threading
 import time
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
@@ -286,56 +286,52 @@ class VoPipeline:
             reader.join(timeout=5.0)
 
 
-_opencv_lock = threading.Lock()
-_opencv_users = 0  # blocks of opencv_single_threaded() open now, in any thread
-_opencv_previous = 0  # OpenCV's thread count before the first of them
+class _ProcessWideSetting:
+    """A process-wide setting held while at least one block is open: ``apply()`` sets it and
+    returns the callable that restores what was there before. Overlapping blocks (two
+    pipelines in two threads) share it; the state from before the first block is restored when
+    the last one ends."""
+
+    def __init__(self, apply: Callable[[], Callable[[], object]]):
+        self._apply = apply
+        self._lock = threading.Lock()
+        self._users = 0  # blocks open now, in any thread
+        self._restore: Callable[[], object] | None = None
+
+    @contextlib.contextmanager
+    def __call__(self):
+        with self._lock:
+            if self._users == 0:
+                self._restore = self._apply()
+            self._users += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._users -= 1
+                if self._users == 0:
+                    self._restore()
+                    self._restore = None
 
 
-_blas_lock = threading.Lock()
-_blas_users = 0  # blocks of blas_single_threaded() open now, in any thread
-_blas_limiter = None  # threadpoolctl's limiter of the first of them (restores the counts)
+def _opencv_on_one_thread() -> Callable[[], None]:
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    return lambda: cv2.setNumThreads(previous)
 
 
-@contextlib.contextmanager
-def blas_single_threaded():
-    """The BLAS libraries loaded (numpy's and scipy's OpenBLAS) use one thread inside the
-    block. The VO's matrices are small (at most a few hundred rows): with a second BLAS thread
-    spinning beside the pipeline's threads, the 640x480 spiral ran at 29 frames/s through the
-    Python API against 57-64 with one (``granite``'s command line sets
-    ``OPENBLAS_NUM_THREADS=1`` before numpy loads; a script or notebook that imported numpy
-    first did not get it). Process-wide, like :func:`opencv_single_threaded`: overlapping
-    blocks share it, and the thread counts from before the first are restored when the last
-    ends."""
-    global _blas_users, _blas_limiter
-    with _blas_lock:
-        if _blas_users == 0:
-            _blas_limiter = threadpool_limits(limits=1, user_api="blas")
-        _blas_users += 1
-    try:
-        yield
-    finally:
-        with _blas_lock:
-            _blas_users -= 1
-            if _blas_users == 0:
-                _blas_limiter.restore_original_limits()
-                _blas_limiter = None
+def _blas_on_one_thread() -> Callable[[], object]:
+    return threadpool_limits(limits=1, user_api="blas").restore_original_limits
 
 
-@contextlib.contextmanager
-def opencv_single_threaded():
-    """OpenCV's parallel loops run on the calling thread inside the block (its worker pool
-    off). The setting is process-wide: overlapping blocks (two pipelines in two threads)
-    share it, and the thread count from before the first is restored when the last ends."""
-    global _opencv_users, _opencv_previous
-    with _opencv_lock:
-        if _opencv_users == 0:
-            _opencv_previous = cv2.getNumThreads()
-            cv2.setNumThreads(1)
-        _opencv_users += 1
-    try:
-        yield
-    finally:
-        with _opencv_lock:
-            _opencv_users -= 1
-            if _opencv_users == 0:
-                cv2.setNumThreads(_opencv_previous)
+#: ``with opencv_single_threaded():`` OpenCV's parallel loops run on the calling thread inside
+#: the block (its worker pool off); process-wide (:class:`_ProcessWideSetting`).
+opencv_single_threaded = _ProcessWideSetting(_opencv_on_one_thread)
+
+#: ``with blas_single_threaded():`` the BLAS libraries loaded (numpy's and scipy's OpenBLAS)
+#: use one thread inside the block; process-wide (:class:`_ProcessWideSetting`). The VO's
+#: matrices are small (at most a few hundred rows): with a second BLAS thread spinning beside
+#: the pipeline's threads, the 640x480 spiral ran at 29 frames/s through the Python API
+#: against 57-64 with one (``granite``'s command line sets ``OPENBLAS_NUM_THREADS=1`` before
+#: numpy loads; a script or notebook that imported numpy first did not get it).
+blas_single_threaded = _ProcessWideSetting(_blas_on_one_thread)
