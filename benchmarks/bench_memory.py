@@ -235,8 +235,7 @@ def numba_libraries_line() -> str:
 
     libraries = [o for o in gc.get_objects() if type(o) is codegen.JITCodeLibrary]
     kept = [o.__dict__.get(_numba_linking._BITCODE) for o in libraries]
-    loaded = sum(b is not None or (o._shared_module is None and o._disable_inspection)
-                 for o, b in zip(libraries, kept))
+    loaded = sum(bool(o._disable_inspection) for o in libraries)  # set by a load from the cache
     parsed = sum(o._shared_module is not None for o in libraries)
     patched = getattr(codegen.CPUCodeLibrary, _numba_linking._MARK, False)
     return (f"numba: {len(libraries)} code libraries ({loaded} from the cache, "
