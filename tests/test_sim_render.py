@@ -296,3 +296,48 @@ def test_no_light_after_the_first_hit_without_bounces():
             brightening[name] = float((lit - dark).mean(axis=2)[ground_px].max())
     assert brightening["one bounce"] > 0.05, brightening  # the control: the emitter lights
     assert brightening["no bounce"] <= 1e-6, brightening
+
+
+def test_the_branching_material_renders_the_all_layer_graphs_image():
+    """The regolith material skips the texture layers a shading point has faded out (Mix
+    Shader branches on w > 0); every branch sums the layers as the graph that evaluates all of
+    them does, so the renders are equal float for float: close to the ground (the finest
+    layer on) and looking far over it (the finer layers off), ripples on and off, rocks."""
+    from simulation.plan import make_plan
+    from simulation.render import Renderer
+    from simulation.terrain.material import surface_material
+    from simulation.terrain.scene import build_world, sky_radiance
+
+    camera = {"width": 96, "height": 72, "fx": 100.0, "fy": 100.0, "cx": 47.5, "cy": 35.5}
+    s = _scenario(camera, render={"samples": 2},
+                  terrain=dict(SMALL_TERRAIN, rock_density=2.0, ripple_coverage=0.5,
+                               ripple_strength=1.3))  # faded: 0.49999997, not 0.5
+    plan = make_plan(s)
+    x, y = 1.0, 2.0
+    ground = float(plan.model.ground_height(x, y))
+    poses = {"close": _look_at(np.array([x, y, ground + 0.3]), np.array([x + 0.1, y, ground])),
+             "far": _look_at(np.array([x, y, ground + 1.5]), np.array([x + 12.0, y, ground]))}
+    focal, a_finest, a_second = 100.0, 0.4 / 40 * 100.0, 1.8 / 40 * 100.0
+    images = {}
+    for branching in (True, False):
+        build_world(s, plan.model)
+        if not branching:
+            mat = surface_material(s.terrain, s.seed, sky_radiance(s.lighting), focal,
+                                   branching=False)
+            for obj in bpy.data.objects:
+                if obj.type == "MESH":
+                    obj.data.materials[0] = mat
+        with Renderer(s) as renderer:
+            for name, T_w_c in poses.items():
+                images[name, branching] = renderer.render(T_w_c)
+    # the fade states the branches select between are in the images: the finest layer is
+    # on (distance < a / 2 at normal incidence) close by, the second finest off far away
+    _, depth_close = images["close", False]
+    _, depth_far = images["far", False]
+    assert np.nanmin(np.where(np.isfinite(depth_close), depth_close, np.nan)) < a_finest / 2
+    assert np.mean(depth_far[np.isfinite(depth_far)] > a_second) > 0.2
+    for name in poses:
+        rgb_branching, _ = images[name, True]
+        rgb_all, _ = images[name, False]
+        assert rgb_all.max() > 0.01
+        np.testing.assert_array_equal(rgb_branching, rgb_all, err_msg=name)
