@@ -106,11 +106,11 @@ def cmd_render(args: argparse.Namespace, argv: list[str]) -> int:
                     disable=args.quiet, dynamic_ncols=True)
 
     summary = render_run(plan, writer, frames, progress)
-    secs = summary["seconds"]
-    mean = f", {sum(secs) / len(secs):.2f} s/frame" if secs else ""
+    n, wall = summary["rendered"], summary.get("wall_seconds")
+    mean = f", {wall / n:.2f} s/frame" if n and wall else ""
     print(f"{scenario.name}: rendered {summary['rendered']} frames, skipped "
           f"{summary['skipped']} finished ones{mean} -> {args.out}", file=sys.stderr)
-    return 0
+    return 130 if summary.get("interrupted") else 0
 
 
 def cmd_view(args: argparse.Namespace) -> int:

@@ -3,8 +3,11 @@ render the requested frames into a resumable output folder (:mod:`simulation.wri
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
 from pathlib import Path
 
@@ -54,9 +57,38 @@ def _load_bpy():
         ) from None
 
 
+class _StopOnCtrlC:
+    """Ctrl-C (SIGINT) ends the frame loop after the frame being rendered.
+
+    Blender's own handler turns a first Ctrl-C into a silent render break and a second
+    into exit(2), and a KeyboardInterrupt raised inside Cycles' Python callback is printed
+    and swallowed; so the loop polls a flag instead (main thread only; elsewhere a no-op).
+    """
+
+    def __init__(self):
+        self.requested = False
+        self._previous = None
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+
+    def _handle(self, signum, frame):
+        if not self.requested:
+            print("\ninterrupted: stopping after this frame (run the command again to resume)",
+                  file=sys.stderr, flush=True)
+        self.requested = True
+
+    def restore(self) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+            self._previous = None
+
+
 def render_run(plan: RunPlan, writer: RunWriter, frame_range: range,
                progress: Callable | None = None, seed_offset: int = 0) -> dict:
-    """Render the unfinished frames of ``frame_range``; returns a small summary dict.
+    """Render the unfinished frames of ``frame_range``; returns a small summary dict:
+    ``rendered``, ``skipped``, ``seconds`` (per frame: its render plus its sensor model, as
+    ``render_seconds`` in the manifest) and ``wall_seconds`` (the frame loop, which overlaps
+    a frame's sensor model and files with the next frame's render).
 
     ``progress(iterable, total)`` wraps the frame loop (e.g. tqdm). Finished frames are
     skipped; :meth:`RunWriter.finish` runs even when interrupted.
@@ -78,23 +110,47 @@ def render_run(plan: RunPlan, writer: RunWriter, frame_range: range,
     summary["build_seconds"] = time.perf_counter() - t0
     renderer = Renderer(s)
     sensor = Sensor(s.sensor, s.camera, s.seed, s.render.grayscale, s.render.exposure)
+
+    def finish_frame(i: int, rgb: np.ndarray, depth: np.ndarray, render_seconds: float) -> None:
+        """The camera model and the files of a rendered frame (worker thread)."""
+        t = time.perf_counter()
+        blur = None
+        if sensor.blurs:
+            e = s.sensor.exposure_time
+            ends = plan.exposure_poses(i, e, 2)
+            blur = plan.exposure_poses(i, e, blur_taps(depth, s.camera, plan.poses[i], ends))
+        image, info = sensor.capture(rgb, i, depth, plan.poses[i], blur)
+        seconds = render_seconds + time.perf_counter() - t
+        writer.write_frame(i, image, depth, seconds, info)
+        summary["rendered"] += 1
+        summary["seconds"].append(seconds)
+
+    # Cycles releases the GIL while it renders: the sensor model and the files of frame i
+    # (one thread, ~0.1 s) run while frame i + 1 renders, at most one frame behind.
+    t_loop = time.perf_counter()
+    pending = None
+    stop = _StopOnCtrlC()
     try:
-        iterator = progress(todo, len(todo)) if progress else todo
-        for i in iterator:
-            motion = plan.motion_poses(i) if s.render.motion_blur else None
-            t = time.perf_counter()
-            rgb, depth = renderer.render(plan.poses[i], motion)
-            blur = None
-            if sensor.blurs:
-                e = s.sensor.exposure_time
-                ends = plan.exposure_poses(i, e, 2)
-                blur = plan.exposure_poses(i, e, blur_taps(depth, s.camera, plan.poses[i], ends))
-            image, info = sensor.capture(rgb, i, depth, plan.poses[i], blur)
-            seconds = time.perf_counter() - t
-            writer.write_frame(i, image, depth, seconds, info)
-            summary["rendered"] += 1
-            summary["seconds"].append(seconds)
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="granite-sim-frame") as pool:
+            try:
+                iterator = progress(todo, len(todo)) if progress else todo
+                for i in iterator:
+                    if stop.requested:
+                        summary["interrupted"] = True
+                        break
+                    motion = plan.motion_poses(i) if s.render.motion_blur else None
+                    t = time.perf_counter()
+                    rgb, depth = renderer.render(plan.poses[i], motion)
+                    seconds = time.perf_counter() - t
+                    if pending is not None:
+                        pending.result()  # a failure of the previous frame stops the run
+                    pending = pool.submit(finish_frame, i, rgb, depth, seconds)
+            finally:
+                if pending is not None:  # also when interrupted: the rendered frame is kept
+                    pending.result()
+        summary["wall_seconds"] = time.perf_counter() - t_loop
     finally:
+        stop.restore()
         renderer.close()
         writer.finish()
         sys.stdout.flush()

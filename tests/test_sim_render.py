@@ -163,6 +163,48 @@ def test_tiny_render_through_the_cli(tmp_path, capsys):
     assert first.read_bytes() == original
 
 
+def test_ctrl_c_stops_a_render_after_the_current_frame(tmp_path):
+    """SIGINT ends ``granite-sim render`` after the frame being rendered (Blender's own handler
+    swallowed a first Ctrl-C and killed the process at the second): exit status 130, every
+    written frame complete and listed, and the next run renders the rest."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    toml = tmp_path / "tiny.toml"
+    toml.write_text(
+        'name = "tiny"\nseed = 5\n[camera]\nwidth = 64\nheight = 48\nfx = 48.0\nfy = 48.0\n'
+        'cx = 31.5\ncy = 23.5\n[terrain]\nextent = 16.0\nresolution = 0.5\nfar_extent = 40.0\n'
+        'rock_model = "power_law"\nrock_density = 0.0\n[flight]\ntype = "hover"\n'
+        'altitude = 3.0\nduration = 30.0\npitch = 80.0\n')
+    out = tmp_path / "run"
+    command = [sys.executable, "-m", "simulation.cli", "render", str(toml), "--out", str(out),
+               "--quiet"]
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    images = out / "mav0" / "cam0" / "data"
+    deadline = time.monotonic() + 120
+    while not (images.is_dir() and any(images.glob("*.png"))) and time.monotonic() < deadline:
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "interrupted: stopping after this frame" in err
+    written = sorted(p.name for p in images.glob("*.png"))
+    assert 0 < len(written) < 600
+    manifest = json.loads((out / "manifest.json").read_text())
+    finished = [f for f in manifest["frames"] if f["render_seconds"] is not None]
+    assert len(finished) == len(written)
+    for name in written:
+        assert (out / "mav0" / "depth0" / "data" / name.replace(".png", ".npy")).exists()
+        assert cv2.imread(str(images / name), cv2.IMREAD_UNCHANGED).std() > 3
+    done = subprocess.run(command + ["--frames", f"0:{len(written) + 2}"], capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert f"rendered 2 frames, skipped {len(written)}" in done.stderr
+
+
 def test_sensor_noise_in_a_render_is_the_models(tmp_path, capsys):
     """Render the same frames with the sensor model and with --no-sensor (ideal camera): the
     variance of the difference, in the images as the VO reads them (``read_image``), grows
