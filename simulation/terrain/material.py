@@ -253,7 +253,6 @@ def surface_material(cfg, seed: int, sky_radiance, focal_px: float,
     layers = _layers(cfg, seed)
     mat = bpy.data.materials.new("regolith")
     mat.cycles.emission_sampling = "NONE"  # the sky term must not turn the ground into a light
-    mat.use_transparent_shadow = False  # opaque: shadow rays stop at their first hit
     n = _Nodes(mat)
     # footprint along the view direction = distance / (focal * cos(incidence)): q = cos / d
     geom = n.new("ShaderNodeNewGeometry")
