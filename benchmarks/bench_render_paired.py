@@ -2,10 +2,11 @@
 
     python benchmarks/bench_render_paired.py --tree-a DIR [--tree-b DIR] [--frames 150,300,...]
                                              [--repeats 2] [--rounds 2]
+                                             [--scenario spiral] [--size 640x480]
 
 Each round starts two fresh processes side by side, one per tree (a checkout or ``git
 worktree`` of granite-py; ``--tree-b`` defaults to this checkout), each rendering the same
-640x480 spiral frames with one Cycles thread: both build the scene, wait for each other, then
+frames (default: the spiral at 640x480) with one Cycles thread: both build the scene, wait for each other, then
 render the frames (``--repeats`` times), so every frame of A is timed while B renders the same
 frame in the same phase of the host. The sides swap their start order in alternate rounds.
 
@@ -15,8 +16,8 @@ while the per-frame ratio of two renders running at the same time shows it in on
 round: the mean seconds per frame of each side (one thread: about twice a two-thread render)
 and the median and mean per-frame ratio B / A (below 1: B is faster); then whether the two
 trees rendered the same images (largest absolute difference of Cycles' linear radiance).
-Bad input (a tree without ``simulation/``, an unknown frame, ``--rounds`` < 1) is a one-line
-error with exit status 2.
+Bad input (a tree without ``simulation/``, an unknown scenario or frame, a malformed
+``--size``, ``--rounds`` < 1) is a one-line error with exit status 2.
 """
 
 from __future__ import annotations
@@ -34,16 +35,22 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def worker(frames: list[int], repeats: int, barrier: Path, out: Path) -> int:
+def _scenario(name: str, width: int, height: int):
+    from simulation.scenario import load_scenario, with_overrides
+
+    return with_overrides(load_scenario(name), width=width, height=height)
+
+
+def worker(scenario: str, width: int, height: int, frames: list[int], repeats: int,
+           barrier: Path, out: Path) -> int:
     """Render ``frames`` with one thread in this process (``simulation`` from PYTHONPATH)."""
     import dataclasses
 
     from simulation.plan import make_plan
     from simulation.render import Renderer
-    from simulation.scenario import load_scenario, with_overrides
     from simulation.terrain.scene import build_world
 
-    s = with_overrides(load_scenario("spiral"), width=640, height=480)
+    s = _scenario(scenario, width, height)
     s = dataclasses.replace(s, render=dataclasses.replace(s.render, threads=1))
     plan = make_plan(s)
     build_world(s, plan.model)
@@ -63,16 +70,16 @@ def worker(frames: list[int], repeats: int, barrier: Path, out: Path) -> int:
     return 0
 
 
-def _round(trees: dict[str, Path], order: list[str], frames: list[int], repeats: int,
-           scratch: Path, k: int) -> dict[str, dict]:
+def _round(trees: dict[str, Path], order: list[str], job: list[str], scratch: Path,
+           k: int) -> dict[str, dict]:
     barrier = scratch / f"barrier_{k}"
     barrier.mkdir()
     procs = {}
     for side in order:
         out = scratch / f"round{k}_{side}.npz"
         env = dict(os.environ, PYTHONPATH=str(trees[side]))
-        cmd = [sys.executable, str(Path(__file__).resolve()), "--worker",
-               ",".join(map(str, frames)), str(repeats), str(barrier), str(out)]
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", *job, str(barrier),
+               str(out)]
         procs[side] = (subprocess.Popen(cmd, env=env, cwd=trees[side],
                                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                         text=True), out)
@@ -93,6 +100,8 @@ def main(argv=None) -> int:
                     help="spiral frames to render (comma-separated; default 9-40 m altitude)")
     ap.add_argument("--repeats", type=int, default=2, help="renders of the frame list per round")
     ap.add_argument("--rounds", type=int, default=2, help="rounds (start order alternates)")
+    ap.add_argument("--scenario", default="spiral", help="bundled scenario name or .toml path")
+    ap.add_argument("--size", default="640x480", help="image size WxH (intrinsics rescaled)")
     args = ap.parse_args(argv)
     trees = {"A": args.tree_a.resolve(), "B": args.tree_b.resolve()}
     for side, tree in trees.items():
@@ -109,19 +118,30 @@ def main(argv=None) -> int:
     if args.rounds < 1 or args.repeats < 1:
         print("error: --rounds and --repeats must be at least 1", file=sys.stderr)
         return 2
-    sys.path.insert(0, str(ROOT))
-    from simulation.plan import make_plan
-    from simulation.scenario import load_scenario, with_overrides
-
-    n = len(make_plan(with_overrides(load_scenario("spiral"), width=640, height=480)).times)
-    if any(not 0 <= f < n for f in frames):
-        print(f"error: --frames: the spiral has frames 0..{n - 1}", file=sys.stderr)
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        print(f"error: --size: expected WxH, got {args.size!r}", file=sys.stderr)
         return 2
+    sys.path.insert(0, str(ROOT))
+    from granite.errors import ConfigError
+    from simulation.plan import make_plan
+
+    try:
+        scenario = _scenario(args.scenario, width, height)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    n = len(make_plan(scenario).times)
+    if any(not 0 <= f < n for f in frames):
+        print(f"error: --frames: {scenario.name} has frames 0..{n - 1}", file=sys.stderr)
+        return 2
+    job = [args.scenario, str(width), str(height), ",".join(map(str, frames)), str(args.repeats)]
     ratios, largest = [], 0.0
     with tempfile.TemporaryDirectory(prefix="granite-render-paired-") as tmp:
         for k in range(args.rounds):
             order = ["A", "B"] if k % 2 == 0 else ["B", "A"]
-            r = _round(trees, order, frames, args.repeats, Path(tmp), k)
+            r = _round(trees, order, job, Path(tmp), k)
             a, b = r["A"]["seconds"], r["B"]["seconds"]
             ratio = b / a
             ratios.extend(ratio.tolist())
@@ -139,7 +159,8 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 6 and sys.argv[1] == "--worker":
-        sys.exit(worker([int(f) for f in sys.argv[2].split(",")], int(sys.argv[3]),
-                        Path(sys.argv[4]), Path(sys.argv[5])))
+    if len(sys.argv) == 9 and sys.argv[1] == "--worker":
+        name, w, h, fr, reps, barrier_dir, out_file = sys.argv[2:]
+        sys.exit(worker(name, int(w), int(h), [int(f) for f in fr.split(",")], int(reps),
+                        Path(barrier_dir), Path(out_file)))
     sys.exit(main())
