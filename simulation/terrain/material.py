@@ -126,6 +126,15 @@ def _faded_value(layer: _Layer) -> np.float32:
     return np.float32(_MEAN * s + c)
 
 
+def _sum3(values: list[np.float32]) -> tuple:
+    """The float32 sum of ``values`` added left to right, as the shader adds them, as a
+    constant vector."""
+    total = values[0]
+    for v in values[1:]:
+        total = np.float32(total + v)
+    return (float(total),) * 3
+
+
 class _LayerNodes:
     """The nodes of one layer that every shading point evaluates: tile coordinates, fade
     weight w = clamp(a q - 1) (q = cos(incidence) / distance, a = finest wavelength x focal
@@ -270,22 +279,16 @@ def surface_material(cfg, seed: int, sky_radiance, focal_px: float,
         for k, ln in enumerate(nodes):
             if k in on:
                 vec = ln.faded_texture(n, shared=ln.layer.mask is None)
-                if acc is None and pending:
-                    total = pending[0]
-                    for v in pending[1:]:
-                        total = np.float32(total + v)
-                    acc = n.vector_math("ADD", (float(total),) * 3, vec)
+                if acc is None:
+                    acc = n.vector_math("ADD", _sum3(pending), vec) if pending else vec
                 else:
-                    acc = vec if acc is None else n.vector_math("ADD", acc, vec)
+                    acc = n.vector_math("ADD", acc, vec)
             elif acc is None:
                 pending.append(_faded_value(ln.layer))
             else:
-                acc = n.vector_math("ADD", acc, (float(_faded_value(ln.layer)),) * 3)
-        if acc is None:  # every layer faded out: the constant mean sum
-            total = pending[0]
-            for v in pending[1:]:
-                total = np.float32(total + v)
-            acc = n.vector_math("ADD", (float(total),) * 3, (0.0, 0.0, 0.0))
+                acc = n.vector_math("ADD", acc, _sum3([_faded_value(ln.layer)]))
+        if acc is None:  # every layer faded out: the constant sum
+            acc = n.vector_math("ADD", _sum3(pending), (0.0, 0.0, 0.0))
         return _shade(n, acc, len(nodes), cfg, sky_radiance, geom.outputs["Normal"])
 
     def split(on_sock, off_closure, on_closure):
