@@ -60,9 +60,9 @@ def _load_bpy():
 class _StopOnCtrlC:
     """Ctrl-C (SIGINT) ends the frame loop after the frame being rendered.
 
-    Blender's own handler turns a first Ctrl-C into a silent render break and a second
-    into exit(2), and a KeyboardInterrupt raised inside Cycles' Python callback is printed
-    and swallowed; so the loop polls a flag instead (main thread only; elsewhere a no-op).
+    Blender's own handler swallows a Ctrl-C (the run went on to its last frame), and a
+    KeyboardInterrupt raised inside Cycles' Python render callback is printed and swallowed
+    too; so the loop polls a flag instead (main thread only; elsewhere a no-op).
     """
 
     def __init__(self):

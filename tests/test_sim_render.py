@@ -165,8 +165,8 @@ def test_tiny_render_through_the_cli(tmp_path, capsys):
 
 def test_ctrl_c_stops_a_render_after_the_current_frame(tmp_path):
     """SIGINT ends ``granite-sim render`` after the frame being rendered (Blender's own handler
-    swallowed a first Ctrl-C and killed the process at the second): exit status 130, every
-    written frame complete and listed, and the next run renders the rest."""
+    swallowed it: the run went on to its last frame): exit status 130, every written frame
+    complete and listed, and the next run renders the rest."""
     import signal
     import subprocess
     import sys
