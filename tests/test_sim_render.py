@@ -205,6 +205,38 @@ def test_ctrl_c_stops_a_render_after_the_current_frame(tmp_path):
     assert f"rendered 2 frames, skipped {len(written)}" in done.stderr
 
 
+def test_a_failing_frame_stops_the_render_and_keeps_the_frames_before(tmp_path, monkeypatch):
+    """The sensor model and the files of frame i run in a worker thread while frame i + 1
+    renders: an error there (here: the disk refuses frame 1) stops the run with that error,
+    frame 0 stays written and listed, and frame 2 is not written."""
+    from simulation.run import prepare, render_run
+    from simulation.writer import RunWriter
+
+    toml = tmp_path / "tiny.toml"
+    toml.write_text(
+        'name = "tiny"\nseed = 5\n[camera]\nwidth = 64\nheight = 48\nfx = 48.0\nfy = 48.0\n'
+        'cx = 31.5\ncy = 23.5\n[terrain]\nextent = 16.0\nresolution = 0.5\nfar_extent = 40.0\n'
+        'rock_model = "power_law"\nrock_density = 0.0\n[flight]\ntype = "hover"\n'
+        'altitude = 3.0\nduration = 0.5\npitch = 80.0\n')
+    from simulation.scenario import load_scenario
+
+    plan, writer, frames = prepare(load_scenario(toml), tmp_path / "run")
+    original = RunWriter.write_frame
+
+    def refuse_frame_1(self, i, *args, **kwargs):
+        if i == 1:
+            raise OSError("no space left on device (test)")
+        return original(self, i, *args, **kwargs)
+
+    monkeypatch.setattr(RunWriter, "write_frame", refuse_frame_1)
+    with pytest.raises(OSError, match="no space left"):
+        render_run(plan, writer, frames)
+    images = tmp_path / "run" / "mav0" / "cam0" / "data"
+    assert sorted(p.name for p in images.glob("*.png")) == ["0.png"]
+    manifest = json.loads((tmp_path / "run" / "manifest.json").read_text())
+    assert [f["index"] for f in manifest["frames"] if f["render_seconds"]] == [0]
+
+
 def test_sensor_noise_in_a_render_is_the_models(tmp_path, capsys):
     """Render the same frames with the sensor model and with --no-sensor (ideal camera): the
     variance of the difference, in the images as the VO reads them (``read_image``), grows
