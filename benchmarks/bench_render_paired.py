@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+BARRIER_TIMEOUT = 600.0  #: seconds a side waits for the other to finish building its scene
 
 
 def _scenario(name: str, width: int, height: int):
@@ -58,7 +59,11 @@ def worker(scenario: str, width: int, height: int, frames: list[int], repeats: i
     with Renderer(s) as renderer:
         renderer.render(plan.poses[frames[0]])  # warm-up: BVH, shaders, images
         (barrier / f"ready_{os.getpid()}").touch()
+        deadline = time.monotonic() + BARRIER_TIMEOUT
         while len(list(barrier.glob("ready_*"))) < 2:
+            if time.monotonic() > deadline:
+                print("the other side never got ready", file=sys.stderr)
+                return 1
             time.sleep(0.02)
         for _ in range(repeats):
             for i in frames:
@@ -77,19 +82,31 @@ def _round(trees: dict[str, Path], order: list[str], job: list[str], scratch: Pa
     procs = {}
     for side in order:
         out = scratch / f"round{k}_{side}.npz"
+        log = scratch / f"round{k}_{side}.log"
         env = dict(os.environ, PYTHONPATH=str(trees[side]))
         cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", *job, str(barrier),
                str(out)]
-        procs[side] = (subprocess.Popen(cmd, env=env, cwd=trees[side],
-                                        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                                        text=True), out)
-    results = {}
-    for side, (proc, out) in procs.items():
-        _, err = proc.communicate()
-        if proc.returncode != 0:
-            raise RuntimeError(f"side {side} failed: {err.strip().splitlines()[-1:]}")
-        results[side] = dict(np.load(out))
-    return results
+        with open(log, "w") as err:
+            proc = subprocess.Popen(cmd, env=env, cwd=trees[side], stdout=subprocess.DEVNULL,
+                                    stderr=err)
+        procs[side] = (proc, out, log)
+
+    def failed() -> list[str]:
+        return [side for side, (proc, _, _) in procs.items() if proc.poll() not in (None, 0)]
+
+    # poll both: a side that fails leaves the other waiting at the barrier
+    while not failed() and any(proc.poll() is None for proc, _, _ in procs.values()):
+        time.sleep(0.1)
+    bad = failed()
+    if bad:
+        for proc, _, _ in procs.values():
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+        side = bad[0]
+        last = (procs[side][2].read_text().strip().splitlines() or ["no message"])[-1]
+        raise RuntimeError(f"side {side} ({trees[side]}) failed: {last}")
+    return {side: dict(np.load(out)) for side, (_, out, _) in procs.items()}
 
 
 def main(argv=None) -> int:
@@ -141,7 +158,11 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="granite-render-paired-") as tmp:
         for k in range(args.rounds):
             order = ["A", "B"] if k % 2 == 0 else ["B", "A"]
-            r = _round(trees, order, job, Path(tmp), k)
+            try:
+                r = _round(trees, order, job, Path(tmp), k)
+            except RuntimeError as e:
+                print(f"error: {e}", file=sys.stderr)
+                return 1
             a, b = r["A"]["seconds"], r["B"]["seconds"]
             ratio = b / a
             ratios.extend(ratio.tolist())

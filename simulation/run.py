@@ -7,8 +7,8 @@ import signal
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -143,7 +143,8 @@ def render_run(plan: RunPlan, writer: RunWriter, frame_range: range,
                     rgb, depth = renderer.render(plan.poses[i], motion)
                     seconds = time.perf_counter() - t
                     if pending is not None:
-                        pending.result()  # a failure of the previous frame stops the run
+                        previous, pending = pending, None
+                        previous.result()  # a failure of the previous frame stops the run
                     pending = pool.submit(finish_frame, i, rgb, depth, seconds)
             finally:
                 if pending is not None:  # also when interrupted: the rendered frame is kept

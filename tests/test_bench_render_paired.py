@@ -57,3 +57,22 @@ def test_one_tree_against_itself_renders_identical_images(tmp_path, capsys):
                        "--size", "64x48", "--frames", "0", "--repeats", "1",
                        "--rounds", "1"]) == 0
     assert "images: differ" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+@pytest.mark.blender
+def test_a_side_that_fails_stops_the_round_with_its_error(tmp_path, capsys):
+    """A tree that cannot render fails its side; the other side, waiting for it at the start
+    barrier, is stopped, and the error names the side and its last message."""
+    pytest.importorskip("bpy")
+    broken = tmp_path / "tree"
+    shutil.copytree(ROOT / "simulation", broken / "simulation")
+    (broken / "granite").symlink_to(ROOT / "granite")
+    (broken / "scenarios").symlink_to(ROOT / "scenarios")
+    render = broken / "simulation" / "render.py"
+    render.write_text(render.read_text() + '\nraise RuntimeError("broken tree (test)")\n')
+    bench = load_benchmark("bench_render_paired")
+    assert bench.main(["--tree-a", str(ROOT), "--tree-b", str(broken), "--size", "64x48",
+                       "--frames", "0", "--repeats", "1", "--rounds", "1"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: side B") and "broken tree (test)" in err
