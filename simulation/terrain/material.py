@@ -136,9 +136,10 @@ def _sum3(values: list[np.float32]) -> tuple:
 
 
 class _LayerNodes:
-    """The nodes of one layer that every shading point evaluates: tile coordinates, fade
+    """The nodes of one layer that decide whether it is needed: tile coordinates, fade
     weight w = clamp(a q - 1) (q = cos(incidence) / distance, a = finest wavelength x focal
-    length in pixels; times the mask attribute if any) and the branch condition w > 0."""
+    length in pixels; times the mask attribute if any) and the branch condition w > 0.
+    Cycles evaluates them where a shading point reaches this layer's branch."""
 
     def __init__(self, n: _Nodes, layer: _Layer, q, focal_px: float):
         self.layer = layer
