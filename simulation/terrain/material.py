@@ -139,7 +139,8 @@ class _LayerNodes:
     """The nodes of one layer that decide whether it is needed: tile coordinates, fade
     weight w = clamp(a q - 1) (q = cos(incidence) / distance, a = finest wavelength x focal
     length in pixels; times the mask attribute if any) and the branch condition w > 0.
-    Cycles evaluates them where a shading point reaches this layer's branch."""
+    Cycles evaluates them where a shading point reaches this layer's branch (the coordinates
+    of a masked layer, which its per-branch texture copies share, before every branch)."""
 
     def __init__(self, n: _Nodes, layer: _Layer, q, focal_px: float):
         self.layer = layer
