@@ -30,6 +30,17 @@ def _scenario(camera: dict, **extra):
     return parse_scenario(data, "tiny.toml")
 
 
+def _tiny_toml(tmp_path, duration: float):
+    """A tiny rockless hover scenario file (64x48 pixels, 20 Hz) of ``duration`` seconds."""
+    toml = tmp_path / "tiny.toml"
+    toml.write_text(
+        'name = "tiny"\nseed = 5\n[camera]\nwidth = 64\nheight = 48\nfx = 48.0\nfy = 48.0\n'
+        'cx = 31.5\ncy = 23.5\n[terrain]\nextent = 16.0\nresolution = 0.5\nfar_extent = 40.0\n'
+        'rock_model = "power_law"\nrock_density = 0.0\n[flight]\ntype = "hover"\n'
+        f'altitude = 3.0\nduration = {duration}\npitch = 80.0\n')
+    return toml
+
+
 def _look_at(eye: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np.ndarray:
     d = target - eye
     alpha = np.arctan2(d[1], d[0])
@@ -108,12 +119,7 @@ def test_tiny_render_through_the_cli(tmp_path, capsys):
     from simulation.plan import make_plan
     from simulation.scenario import load_scenario
 
-    toml = tmp_path / "tiny.toml"
-    toml.write_text(
-        'name = "tiny"\nseed = 5\n[camera]\nwidth = 64\nheight = 48\nfx = 48.0\nfy = 48.0\n'
-        'cx = 31.5\ncy = 23.5\n[terrain]\nextent = 16.0\nresolution = 0.5\nfar_extent = 40.0\n'
-        'rock_model = "power_law"\nrock_density = 0.0\n[flight]\ntype = "hover"\naltitude = 3.0\nduration = 0.1\n'
-        'pitch = 80.0\n')
+    toml = _tiny_toml(tmp_path, 0.1)
     out = tmp_path / "run"
     assert cli.main(["render", str(toml), "--out", str(out), "--quiet"]) == 0
     capsys.readouterr()
@@ -172,12 +178,7 @@ def test_ctrl_c_stops_a_render_after_the_current_frame(tmp_path):
     import sys
     import time
 
-    toml = tmp_path / "tiny.toml"
-    toml.write_text(
-        'name = "tiny"\nseed = 5\n[camera]\nwidth = 64\nheight = 48\nfx = 48.0\nfy = 48.0\n'
-        'cx = 31.5\ncy = 23.5\n[terrain]\nextent = 16.0\nresolution = 0.5\nfar_extent = 40.0\n'
-        'rock_model = "power_law"\nrock_density = 0.0\n[flight]\ntype = "hover"\n'
-        'altitude = 3.0\nduration = 30.0\npitch = 80.0\n')
+    toml = _tiny_toml(tmp_path, 30.0)
     out = tmp_path / "run"
     command = [sys.executable, "-m", "simulation.cli", "render", str(toml), "--out", str(out),
                "--quiet"]
@@ -212,12 +213,7 @@ def test_a_failing_frame_stops_the_render_and_keeps_the_frames_before(tmp_path, 
     from simulation.run import prepare, render_run
     from simulation.writer import RunWriter
 
-    toml = tmp_path / "tiny.toml"
-    toml.write_text(
-        'name = "tiny"\nseed = 5\n[camera]\nwidth = 64\nheight = 48\nfx = 48.0\nfy = 48.0\n'
-        'cx = 31.5\ncy = 23.5\n[terrain]\nextent = 16.0\nresolution = 0.5\nfar_extent = 40.0\n'
-        'rock_model = "power_law"\nrock_density = 0.0\n[flight]\ntype = "hover"\n'
-        'altitude = 3.0\nduration = 0.5\npitch = 80.0\n')
+    toml = _tiny_toml(tmp_path, 0.5)
     from simulation.scenario import load_scenario
 
     plan, writer, frames = prepare(load_scenario(toml), tmp_path / "run")
