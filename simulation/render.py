@@ -108,12 +108,45 @@ def _bounce_ray_visibility(scene, visible: bool) -> None:
     ``max_bounces = 0`` promises; the sun still lights the surfaces through its shadow rays.
     """
     for obj in scene.objects:
-        if obj.type == "MESH":
+        if obj.type == "MESH" and not obj.name.endswith(_TWIN):
             obj.visible_diffuse = obj.visible_glossy = visible
             obj.visible_transmission = obj.visible_volume_scatter = visible
     if scene.world is not None:
         vis = scene.world.cycles_visibility
         vis.diffuse = vis.glossy = vis.transmission = vis.scatter = visible
+    _reject_hidden_rays_at_instances(scene, not visible)
+
+
+_TWIN = ".bvh_twin"  #: name suffix of the hidden second users made below
+
+
+def _reject_hidden_rays_at_instances(scene, on: bool) -> None:
+    """Make every single-user mesh a BVH instance (``on``) or undo it.
+
+    Cycles bakes the transform of a mesh with one user into its vertices and puts its
+    triangles into the one top-level Embree BVH; a ray that none of them is visible to (the
+    bounce rays hidden above) still traverses that BVH to the end, testing each triangle on
+    its way and only then rejecting it by its visibility mask. A mesh with a second user
+    becomes an instance, a BVH of its own under one top-level node whose mask rejects such a
+    ray at once. The second user is a twin that no traced ray can see (visible to volume
+    scatter rays only, which a scene without volumes never traces), a millionth of the size,
+    100 km below the world. Camera and shadow rays pay one instance transform; what it saves:
+    docs/simulation.md ("One instance for the whole world").
+    """
+    for obj in [o for o in scene.objects if o.name.endswith(_TWIN)]:
+        bpy.data.objects.remove(obj)
+    if not on:
+        return
+    for obj in list(scene.objects):
+        if obj.type != "MESH" or obj.data.users != 1:
+            continue
+        twin = bpy.data.objects.new(obj.name + _TWIN, obj.data)
+        twin.location = (0.0, 0.0, -1.0e5)
+        twin.scale = (1e-6, 1e-6, 1e-6)
+        twin.visible_camera = twin.visible_shadow = False
+        twin.visible_diffuse = twin.visible_glossy = twin.visible_transmission = False
+        twin.visible_volume_scatter = True
+        scene.collection.objects.link(twin)
 
 
 def make_camera(scene, cam_cfg):

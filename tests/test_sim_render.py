@@ -411,3 +411,61 @@ def test_the_branching_material_renders_the_all_layer_graphs_image():
         rgb_all, _ = images[name, False]
         assert rgb_all.max() > 0.01
         np.testing.assert_array_equal(rgb_branching, rgb_all, err_msg=name)
+
+
+def test_instanced_rocks_stand_where_the_merged_rocks_do():
+    """``rock_instances = true`` (Blender objects sharing prototype meshes) and the default
+    (all rocks joined to the terrain's mesh) place every rock triangle at the same spot: the
+    depth maps agree, and the rocks are in view (the depth differs from a rockless world)."""
+    from simulation.plan import make_plan
+    from simulation.render import Renderer
+    from simulation.terrain.scene import build_world
+
+    camera = {"width": 96, "height": 72, "fx": 80.0, "fy": 80.0, "cx": 47.5, "cy": 35.5}
+    depths = {}
+    for name, terrain in (("merged", {"rock_density": 3.0}),
+                          ("instanced", {"rock_density": 3.0, "rock_instances": True}),
+                          ("rockless", {"rock_density": 0.0})):
+        s = _scenario(camera, render={"samples": 1},
+                      terrain=dict(SMALL_TERRAIN, rock_model="power_law", **terrain))
+        plan = make_plan(s)
+        build_world(s, plan.model)
+        with Renderer(s) as renderer:
+            _, depths[name] = renderer.render(plan.poses[0])
+    finite = np.isfinite(depths["merged"])
+    assert finite.mean() > 0.9
+    np.testing.assert_array_equal(np.isfinite(depths["instanced"]), finite)
+    np.testing.assert_allclose(depths["instanced"][finite], depths["merged"][finite], rtol=1e-4)
+    assert np.mean(np.abs(depths["rockless"][finite] - depths["merged"][finite]) > 0.01) > 0.02
+
+
+def test_without_bounces_the_world_is_one_instance_its_image_unchanged():
+    """With ``max_bounces = 0`` every single-user mesh gets a hidden second user (so Cycles
+    makes it an instance whose mask rejects the bounce rays at once): the twin is visible to
+    no ray the render traces and changes neither image nor depth beyond float rounding; with
+    bounces (``reconfigure``) the twins are gone."""
+    import dataclasses
+
+    from simulation.plan import make_plan
+    from simulation.render import Renderer, _reject_hidden_rays_at_instances
+    from simulation.terrain.scene import build_world
+
+    camera = {"width": 64, "height": 48, "fx": 48.0, "fy": 48.0, "cx": 31.5, "cy": 23.5}
+    s = _scenario(camera, render={"samples": 2})
+    plan = make_plan(s)
+    build_world(s, plan.model)
+    with Renderer(s) as renderer:
+        twins = [o for o in bpy.data.objects if o.name.endswith(".bvh_twin")]
+        assert [t.data.name for t in twins] == ["surface"]
+        twin = twins[0]
+        assert not any((twin.visible_camera, twin.visible_shadow, twin.visible_diffuse,
+                        twin.visible_glossy, twin.visible_transmission))
+        rgb, depth = renderer.render(plan.poses[0])
+        _reject_hidden_rays_at_instances(renderer.scene, False)
+        renderer.scene.update_tag()
+        rgb_flat, depth_flat = renderer.render(plan.poses[0])
+        renderer.reconfigure(dataclasses.replace(s.render, max_bounces=1))
+        assert not [o for o in bpy.data.objects if o.name.endswith(".bvh_twin")]
+    assert rgb.max() > 0.01
+    np.testing.assert_allclose(rgb, rgb_flat, rtol=0, atol=1e-5 * rgb.max())
+    np.testing.assert_allclose(depth, depth_flat, rtol=1e-6)

@@ -1,7 +1,8 @@
-"""Build the Mars-analogue world in Blender (``bpy``): heightfield mesh, rocks (merged into
-one mesh, or Blender instances of the prototypes), matte regolith material with a tile
-repeated at several scales, butterscotch sky and a low sun casting shadows. All randomness
-comes from the numpy modules (seeded), so the same scenario builds the same scene.
+"""Build the Mars-analogue world in Blender (``bpy``): heightfield and rocks as one mesh
+("surface"; or the rocks as Blender instances of the prototypes), matte regolith material
+with a tile repeated at several scales, butterscotch sky and a low sun casting shadows. All
+randomness comes from the numpy modules (seeded), so the same scenario builds the same
+scene.
 """
 
 from __future__ import annotations
@@ -32,7 +33,9 @@ class World:
     sun_direction: np.ndarray
 
 
-def _mesh(name: str, verts: np.ndarray, tris: np.ndarray, smooth: bool):
+def _mesh(name: str, verts: np.ndarray, tris: np.ndarray, smooth):
+    """A Blender mesh of triangles; ``smooth``: one flag for all faces or one per face
+    (smooth: interpolated vertex normals; flat: the face normal)."""
     mesh = bpy.data.meshes.new(name)
     mesh.vertices.add(len(verts))
     mesh.vertices.foreach_set("co", np.ascontiguousarray(verts, dtype=np.float32).ravel())
@@ -41,10 +44,43 @@ def _mesh(name: str, verts: np.ndarray, tris: np.ndarray, smooth: bool):
     mesh.polygons.add(len(tris))
     mesh.polygons.foreach_set("loop_start", np.arange(0, tris.size, 3, dtype=np.int32))
     mesh.update(calc_edges=True)
-    if smooth:
+    if np.ndim(smooth):
+        mesh.polygons.foreach_set("use_smooth", np.asarray(smooth, dtype=bool))
+        mesh.update()
+    elif smooth:
         mesh.shade_smooth()
     else:
         mesh.shade_flat()
+    return mesh
+
+
+@dataclass
+class _Surface:
+    """Triangles with the material's per-vertex attributes (see :func:`_set_attributes`)."""
+
+    verts: np.ndarray
+    tris: np.ndarray
+    smooth: bool
+    uvs: list[np.ndarray]
+    base: np.ndarray
+    ripples: tuple[np.ndarray, np.ndarray] | None
+
+
+def _joined_mesh(name: str, parts: list[_Surface], material):
+    """One mesh of several surfaces (each keeps its shading and attributes): Cycles then
+    builds one BVH of all of them, which :mod:`simulation.render` can make a single
+    instance (docs/simulation.md, "One instance for the whole world")."""
+    offsets = np.cumsum([0] + [len(p.verts) for p in parts[:-1]])
+    tris = np.concatenate([p.tris + o for p, o in zip(parts, offsets)])
+    smooth = np.concatenate([np.full(len(p.tris), p.smooth) for p in parts])
+    mesh = _mesh(name, np.concatenate([p.verts for p in parts]), tris, smooth)
+    ripples = None
+    if parts[0].ripples is not None:
+        ripples = tuple(np.concatenate([p.ripples[i] for p in parts]) for i in range(2))
+    _set_attributes(mesh, [np.concatenate([p.uvs[k] for p in parts])
+                           for k in range(len(parts[0].uvs))],
+                    np.concatenate([p.base for p in parts]), ripples)
+    mesh.materials.append(material)
     return mesh
 
 
@@ -129,29 +165,28 @@ def _no_ripples(cfg, xy: np.ndarray):
     return np.zeros((len(xy), 2), np.float32), np.zeros(len(xy), np.float32)
 
 
-def _rocks(coll, cfg, protos, rocks, material, seed: int) -> None:
-    rng = np.random.default_rng([seed, 0x2C0])
-    colors = rock_base_color(cfg, rng, max(len(rocks), 1))
-    L = len(cfg.texture_scales)
-    if not cfg.rock_instances:
-        verts, tris, owner = merged_rocks(protos, rocks)
-        if not len(verts):
-            return
-        mesh = _mesh("rocks", verts, tris, smooth=False)
-        xy = rock_projection(verts)
-        _set_attributes(mesh, [tile_uv(xy, s, k) for k, s in enumerate(cfg.texture_scales)],
-                        colors[owner], _no_ripples(cfg, xy))
-        mesh.materials.append(material)
-        coll.objects.link(bpy.data.objects.new("rocks", mesh))
-        return
-    # One object per rock sharing its prototype's mesh (Blender / Cycles instancing); the
-    # texture follows the prototype's local frame, one colour per prototype.
+def _merged_rock_surface(cfg, protos, rocks, seed: int) -> _Surface | None:
+    """All rocks as one flat-shaded surface, one base colour per rock (None: no rocks)."""
+    verts, tris, owner = merged_rocks(protos, rocks)
+    if not len(verts):
+        return None
+    colors = rock_base_color(cfg, np.random.default_rng([seed, 0x2C0]), max(len(rocks), 1))
+    xy = rock_projection(verts)
+    return _Surface(verts, tris, False,
+                    [tile_uv(xy, s, k) for k, s in enumerate(cfg.texture_scales)],
+                    colors[owner], _no_ripples(cfg, xy))
+
+
+def _rock_instances(coll, cfg, protos, rocks, material, seed: int) -> None:
+    """One object per rock sharing its prototype's mesh (Blender / Cycles instancing); the
+    texture follows the prototype's local frame, one colour per prototype."""
+    colors = rock_base_color(cfg, np.random.default_rng([seed, 0x2C0]), max(len(rocks), 1))
     meshes = []
     for k, (v, f) in enumerate(protos):
         mesh = _mesh(f"rock_proto_{k}", v, f, smooth=False)
         xy = rock_projection(v)
         _set_attributes(mesh, [tile_uv(xy, 0.5 * s, j) for j, s in
-                               enumerate(cfg.texture_scales[:L])],
+                               enumerate(cfg.texture_scales)],
                         np.repeat(colors[k % len(colors)][None], len(v), axis=0),
                         _no_ripples(cfg, xy))
         mesh.materials.append(material)
@@ -179,15 +214,19 @@ def build_world(scenario, model: TerrainModel | None = None) -> World:
     scene = bpy.context.scene
     material = surface_material(cfg, seed, sky_radiance(scenario.lighting), scenario.camera.fx)
     verts, tris = model.heightfield.triangles()
-    mesh = _mesh("terrain", verts, tris, smooth=True)
     xy = verts[:, :2]
     ripples = (ripple_uv(xy, cfg), ripple_mask(cfg, seed, xy)) if has_ripples(cfg) else None
-    _set_attributes(mesh, [tile_uv(xy, s, k) for k, s in enumerate(cfg.texture_scales)],
-                    terrain_base_color(cfg, seed, xy), ripples)
-    mesh.materials.append(material)
-    scene.collection.objects.link(bpy.data.objects.new("terrain", mesh))
-    rock_coll = bpy.data.collections.new("rocks")
-    scene.collection.children.link(rock_coll)
-    _rocks(rock_coll, cfg, model.prototypes, model.rocks, material, seed)
+    parts = [_Surface(verts, tris, True,
+                      [tile_uv(xy, s, k) for k, s in enumerate(cfg.texture_scales)],
+                      terrain_base_color(cfg, seed, xy), ripples)]
+    if not cfg.rock_instances:  # the rocks join the terrain's mesh
+        rock_surface = _merged_rock_surface(cfg, model.prototypes, model.rocks, seed)
+        parts += [rock_surface] if rock_surface is not None else []
+    mesh = _joined_mesh("surface", parts, material)
+    scene.collection.objects.link(bpy.data.objects.new("surface", mesh))
+    if cfg.rock_instances:
+        rock_coll = bpy.data.collections.new("rocks")
+        scene.collection.children.link(rock_coll)
+        _rock_instances(rock_coll, cfg, model.prototypes, model.rocks, material, seed)
     sun_dir = _sky_and_sun(scene, scenario.lighting)
     return World(model, sun_dir)
