@@ -381,7 +381,7 @@ def test_the_branching_material_renders_the_all_layer_graphs_image():
     camera = {"width": 96, "height": 72, "fx": 100.0, "fy": 100.0, "cx": 47.5, "cy": 35.5}
     s = _scenario(camera, render={"samples": 2},
                   terrain=dict(SMALL_TERRAIN, rock_density=2.0, ripple_coverage=0.5,
-                               ripple_strength=1.3))  # faded: 0.49999997, not 0.5
+                               ripple_strength=1.3))  # a weight above 1: mask x 1.3
     plan = make_plan(s)
     x, y = 1.0, 2.0
     ground = float(plan.model.ground_height(x, y))
@@ -469,3 +469,32 @@ def test_without_bounces_the_world_is_one_instance_its_image_unchanged():
     assert rgb.max() > 0.01
     np.testing.assert_allclose(rgb, rgb_flat, rtol=0, atol=1e-5 * rgb.max())
     np.testing.assert_allclose(depth, depth_flat, rtol=1e-6)
+
+
+def test_the_ripple_contrast_scales_with_ripple_strength():
+    """The ripple layer adds mask x ``ripple_strength`` x (texel - mean), also where that
+    weight exceeds 1 (the fade's factor is not clamped): without bumps (radiance linear in
+    the albedo) a pixel's radiance is linear in the strength, I(2) - I(1) = 2 (I(1) - I(0.5)),
+    and the ripples do change the image."""
+    from simulation.plan import make_plan
+    from simulation.render import Renderer
+    from simulation.terrain.scene import build_world
+
+    camera = {"width": 64, "height": 48, "fx": 60.0, "fy": 60.0, "cx": 31.5, "cy": 23.5}
+    images = {}
+    for strength in (0.5, 1.0, 2.0):
+        s = _scenario(camera, render={"samples": 1},
+                      terrain=dict(SMALL_TERRAIN, rock_density=0.0, ripple_coverage=0.9,
+                                   bump_strength=0.0, ripple_strength=strength))
+        plan = make_plan(s)
+        x, y = 1.0, 2.0
+        ground = float(plan.model.ground_height(x, y))
+        build_world(s, plan.model)
+        with Renderer(s) as renderer:
+            images[strength], _ = renderer.render(
+                _look_at(np.array([x, y, ground + 1.5]), np.array([x + 0.3, y, ground])))
+    step_half = images[1.0] - images[0.5]
+    step_one = images[2.0] - images[1.0]
+    assert np.abs(step_half).max() > 0.01 * images[1.0].max()
+    np.testing.assert_allclose(step_one, 2.0 * step_half, rtol=0,
+                               atol=1e-4 * images[1.0].max())

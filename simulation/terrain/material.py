@@ -45,13 +45,13 @@ def _tile_image(name: str, data: np.ndarray):
 @dataclass(frozen=True)
 class _Layer:
     """One texture layer of the material: its image, the vertex attribute holding its tile
-    coordinates, its finest wavelength (m), an optional weight attribute and a contrast."""
+    coordinates, its finest wavelength (m) and an optional weight attribute (the ripples':
+    mask x ``ripple_strength``, so it may exceed 1)."""
 
     image: object
     uv: str
     finest_wavelength: float
     mask: str | None = None
-    strength: float = 1.0
 
 
 def has_ripples(cfg) -> bool:
@@ -69,7 +69,7 @@ def _layers(cfg, seed: int) -> list[_Layer]:
         tile = tile_in_world(make_ripple_texture(seed), ripple_angle(cfg.ripple_azimuth))
         layers.append(_Layer(_tile_image("ripple_tile", tile), "uvr",
                              cfg.ripple_wavelength * RIPPLES_PER_TILE / RIPPLE_FINEST_CYCLES,
-                             mask="ripple", strength=cfg.ripple_strength))
+                             mask="ripple"))
     return layers
 
 
@@ -113,26 +113,16 @@ class _Nodes:
         return node.outputs["Vector"]
 
 
-_MEAN = np.float32(0.5)  #: what a faded layer contributes per channel: (no slope, no slope, mean)
+#: what a faded layer contributes (x-slope, y-slope, albedo): exactly its mean, 0.5
+_MEAN = np.full(3, 0.5, np.float32)
 
 
-def _faded_value(layer: _Layer) -> np.float32:
-    """The float32 value a fully faded layer adds per channel, exactly as the shader computes
-    it: the mean 0.5, or with a strength s: 0.5 s + 0.5 (1 - s) rounded once (0.5 s is exact,
-    so a fused and an unfused multiply-add give the same float)."""
-    if layer.strength == 1.0:
-        return _MEAN
-    s, c = np.float32(layer.strength), np.float32(0.5 * (1.0 - layer.strength))
-    return np.float32(_MEAN * s + c)
-
-
-def _sum3(values: list[np.float32]) -> tuple:
-    """The float32 sum of ``values`` added left to right, as the shader adds them, as a
-    constant vector."""
-    total = values[0]
-    for v in values[1:]:
-        total = np.float32(total + v)
-    return (float(total),) * 3
+def _sum(vectors: list[np.ndarray]) -> tuple:
+    """The float32 sum of constant vectors added left to right, as the shader adds them."""
+    total = np.asarray(vectors[0], np.float32)
+    for v in vectors[1:]:
+        total = (total + np.asarray(v, np.float32)).astype(np.float32)
+    return tuple(float(x) for x in total)
 
 
 class _LayerNodes:
@@ -168,7 +158,7 @@ class _LayerNodes:
 
     def faded_texture(self, n: _Nodes, shared: bool):
         """(x-slope, y-slope, albedo) of the layer after the fade: mean + w (texel - mean),
-        and with a strength s: mean + s (that - mean). ``shared``: one node chain for every
+        w unclamped (a weight attribute may exceed 1). ``shared``: one node chain for every
         branch that uses it; otherwise a new one per call (Cycles merges identical nodes,
         and a node two branches share is evaluated before they split, i.e. always)."""
         if shared and self._faded_texture is not None:
@@ -179,54 +169,63 @@ class _LayerNodes:
             tex.projection_blend = 0.01 * self._copies
             self._copies += 1
         n.link(self.uv, tex.inputs["Vector"])
-        fade = n.new("ShaderNodeMix", data_type="VECTOR", factor_mode="UNIFORM")
+        fade = n.new("ShaderNodeMix", data_type="VECTOR", factor_mode="UNIFORM",
+                     clamp_factor=False)
         n.link(self.weight, _socket(fade.inputs, "Factor_Float"))
-        _socket(fade.inputs, "A_Vector").default_value = (_MEAN,) * 3
+        _socket(fade.inputs, "A_Vector").default_value = tuple(float(x) for x in _MEAN)
         n.link(tex.outputs["Color"], _socket(fade.inputs, "B_Vector"))
         out = _socket(fade.outputs, "Result_Vector")
-        s = self.layer.strength
-        if s != 1.0:
-            out = n.vector_math("MULTIPLY_ADD", out, (s,) * 3, (0.5 * (1.0 - s),) * 3)
         if shared:
             self._faded_texture = out
         return out
 
 
+def _shade_offset(n_layers: int, cfg) -> np.ndarray:
+    """The constant K the layer sum starts from, so that the shading needs fewer nodes:
+    acc = K + sum of layers, K = (-L / 2, -L / 2, L (1 - c) / (2 c)) for L layers and texture
+    contrast c (each layer is in [0, 1] around its mean 0.5). Then acc_xy is the summed slope
+    / (2 R) (R = SLOPE_RANGE), and (2 c / L) acc_z = 1 + c (2 x mean layer albedo - 1) is the
+    albedo gain (:func:`_shade`)."""
+    L, c = n_layers, cfg.texture_contrast
+    return np.array([-0.5 * L, -0.5 * L, 0.5 * L * (1.0 - c) / c if c > 0 else 0.0],
+                    np.float32)
+
+
 def _shade(n: _Nodes, acc, n_layers: int, cfg, sky_radiance, normal_in):
-    """Closure of a shading point from the summed layers ``acc`` = (x-slope, y-slope,
-    albedo) sums, each layer in [0, 1] around its mean 0.5: Lambertian BSDF plus sky emission."""
+    """Closure of a shading point from ``acc`` = K + the summed layers (x-slope, y-slope,
+    albedo; :func:`_shade_offset`): Lambertian BSDF plus sky emission.
+
+    shading normal = normalize(N + k (summed slopes)) with k = -0.3 bump / sqrt(L), i.e.
+    N + acc (2 R k, 2 R k, 0); albedo = base x gain, gain = 1 + c (2 mean layer albedo - 1) =
+    acc . (0, 0, 2 c / L); sky emission = albedo x sky radiance x (1 + n_z) / 2."""
     L = n_layers
-    # slope sum = 2 R (acc - L / 2) with R = SLOPE_RANGE; N' = N + k (slope sum) =
-    # acc * 2 R k + (N - L R k)
-    k_tilt = -0.3 * cfg.bump_strength / np.sqrt(L)
-    g = 2.0 * SLOPE_RANGE * k_tilt
-    shifted = n.vector_math("ADD", normal_in,
-                            (-L * SLOPE_RANGE * k_tilt, -L * SLOPE_RANGE * k_tilt, 0.0))
-    tilt = n.vector_math("MULTIPLY_ADD", acc, (g, g, 0.0), shifted)
+    g = 2.0 * SLOPE_RANGE * (-0.3 * cfg.bump_strength / np.sqrt(L))
+    tilt = n.vector_math("MULTIPLY_ADD", acc, (g, g, 0.0), normal_in)
     normal = n.vector_math("NORMALIZE", tilt)
-    # gain = 1 + 2 c (sum / L - 0.5) = (2c / L) * sum_z + (1 - c), with sum_z = acc . e_z
     c = cfg.texture_contrast
-    gain = n.new("ShaderNodeVectorMath", operation="DOT_PRODUCT")
-    n.link(acc, gain.inputs[0])
-    gain.inputs[1].default_value = (0.0, 0.0, 2.0 * c / L)
-    base = n.new("ShaderNodeAttribute", attribute_type="GEOMETRY", attribute_name="base")
-    bias = n.vector_math("SCALE", base.outputs["Vector"])
-    bias.node.inputs["Scale"].default_value = 1.0 - c
-    albedo = n.vector_math("MULTIPLY_ADD", base.outputs["Vector"], gain.outputs["Value"], bias)
+    base = n.new("ShaderNodeAttribute", attribute_type="GEOMETRY",
+                 attribute_name="base").outputs["Vector"]
+    albedo = base
+    if c > 0:
+        gain = n.new("ShaderNodeVectorMath", operation="DOT_PRODUCT")
+        n.link(acc, gain.inputs[0])
+        gain.inputs[1].default_value = (0.0, 0.0, 2.0 * c / L)
+        albedo = n.vector_math("SCALE", base)
+        n.link(gain.outputs["Value"], albedo.node.inputs["Scale"])
     bsdf = n.new("ShaderNodeBsdfDiffuse")
     bsdf.inputs["Roughness"].default_value = 0.0
     n.link(albedo, bsdf.inputs["Color"])
     n.link(normal, bsdf.inputs["Normal"])
-    # sky term: albedo * (sky/2 * n_z + sky/2)
-    nz = n.new("ShaderNodeVectorMath", operation="DOT_PRODUCT")
-    nz.inputs[1].default_value = (0.0, 0.0, 1.0)
+    # sky term: (albedo x sky / 2) x (1 + n_z), the second factor as the emission's strength
+    nz = n.new("ShaderNodeSeparateXYZ")
     n.link(normal, nz.inputs[0])
+    one_plus = n.new("ShaderNodeMath", operation="ADD")
+    n.link(nz.outputs["Z"], one_plus.inputs[0])
+    one_plus.inputs[1].default_value = 1.0
     half = tuple(0.5 * np.asarray(sky_radiance, dtype=np.float64))
-    amb = n.vector_math("MULTIPLY_ADD", nz.outputs["Value"], half, half)
-    sky = n.vector_math("MULTIPLY", albedo, amb)
     emit = n.new("ShaderNodeEmission")
-    emit.inputs["Strength"].default_value = 1.0
-    n.link(sky, emit.inputs["Color"])
+    n.link(n.vector_math("MULTIPLY", albedo, half), emit.inputs["Color"])
+    n.link(one_plus.outputs[0], emit.inputs["Strength"])
     both = n.new("ShaderNodeAddShader")
     n.link(bsdf.outputs["BSDF"], both.inputs[0])
     n.link(emit.outputs["Emission"], both.inputs[1])
@@ -238,8 +237,8 @@ def surface_material(cfg, seed: int, sky_radiance, focal_px: float,
     """The one material of terrain and rocks (both carry the same vertex attributes).
 
     Tile layer k (tile size s_k) holds no detail finer than s_k / FINEST_CYCLES (the ripple
-    layer: its own finest wavelength; it is also weighted by the per-vertex ripple mask and
-    its deviation from the mean scaled by ``ripple_strength``); it is faded
+    layer: its own finest wavelength; its weight is multiplied by the per-vertex ripple mask x
+    ``ripple_strength``, which scales its deviation from the mean); it is faded
     to its mean (what a pixel integrating the texture sees) as that wavelength shrinks from 2
     to 1 pixel footprints (footprint along the view = camera distance / (``focal_px`` x
     cos(incidence))), like an anisotropic mip-map: without
@@ -275,22 +274,21 @@ def surface_material(cfg, seed: int, sky_radiance, focal_px: float,
     n.link(n.new("ShaderNodeLightPath").outputs["Ray Length"], inv_dist.inputs[1])
     nodes = [_LayerNodes(n, layer, inv_dist.outputs[0], focal_px) for layer in layers]
 
+    offset = _shade_offset(len(nodes), cfg)
+
     def leaf(on: frozenset):
         """The closure where exactly the layers ``on`` are not faded out."""
-        acc, pending = None, []  # pending: faded values before the first layer that is on
+        acc, pending = None, [offset]  # pending: constants before the first layer that is on
         for k, ln in enumerate(nodes):
             if k in on:
                 vec = ln.faded_texture(n, shared=ln.layer.mask is None)
-                if acc is None:
-                    acc = n.vector_math("ADD", _sum3(pending), vec) if pending else vec
-                else:
-                    acc = n.vector_math("ADD", acc, vec)
+                acc = n.vector_math("ADD", _sum(pending) if acc is None else acc, vec)
             elif acc is None:
-                pending.append(_faded_value(ln.layer))
+                pending.append(_MEAN)
             else:
-                acc = n.vector_math("ADD", acc, _sum3([_faded_value(ln.layer)]))
+                acc = n.vector_math("ADD", acc, _sum([_MEAN]))
         if acc is None:  # every layer faded out: the constant sum
-            acc = n.vector_math("ADD", _sum3(pending), (0.0, 0.0, 0.0))
+            acc = n.vector_math("ADD", _sum(pending), (0.0, 0.0, 0.0))
         return _shade(n, acc, len(nodes), cfg, sky_radiance, geom.outputs["Normal"])
 
     def split(on_sock, off_closure, on_closure):

@@ -87,7 +87,8 @@ def _joined_mesh(name: str, parts: list[_Surface], material):
 def _set_attributes(mesh, uvs: list[np.ndarray], base: np.ndarray,
                     ripples: tuple[np.ndarray, np.ndarray] | None = None) -> None:
     """Per-vertex tile coordinates ``uv<k>`` (FLOAT2), linear base colour ``base`` and,
-    with ``ripples`` = (coordinates, weight), the ripple layer's ``uvr`` and ``ripple``."""
+    with ``ripples`` = (coordinates, weight), the ripple layer's ``uvr`` and ``ripple`` (its
+    fade weight's factor: the ripple mask x ``ripple_strength``)."""
     for k, uv in enumerate(uvs):
         attr = mesh.attributes.new(f"uv{k}", "FLOAT2", "POINT")
         attr.data.foreach_set("vector", np.ascontiguousarray(uv, dtype=np.float32).ravel())
@@ -215,7 +216,9 @@ def build_world(scenario, model: TerrainModel | None = None) -> World:
     material = surface_material(cfg, seed, sky_radiance(scenario.lighting), scenario.camera.fx)
     verts, tris = model.heightfield.triangles()
     xy = verts[:, :2]
-    ripples = (ripple_uv(xy, cfg), ripple_mask(cfg, seed, xy)) if has_ripples(cfg) else None
+    ripples = None
+    if has_ripples(cfg):  # the ripple layer's weight: mask x strength (deviation from the mean)
+        ripples = (ripple_uv(xy, cfg), cfg.ripple_strength * ripple_mask(cfg, seed, xy))
     parts = [_Surface(verts, tris, True,
                       [tile_uv(xy, s, k) for k, s in enumerate(cfg.texture_scales)],
                       terrain_base_color(cfg, seed, xy), ripples)]
