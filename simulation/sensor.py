@@ -1,4 +1,4 @@
-"""Camera sensor model in pure numpy: the rendered linear radiance becomes the digital image a
+"""Camera sensor model (numpy, one numba kernel): the rendered linear radiance becomes the digital image a
 real global-shutter navigation camera would deliver.
 
 Chain, per frame (every step documented with its default in ``docs/simulation.md``):
@@ -30,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from simulation.imaging import linear_to_srgb
@@ -125,6 +126,39 @@ def _unproject(cam, depth: np.ndarray, step: tuple[int, int] = (1, 1)) -> np.nda
     return ray * z[..., None]
 
 
+@numba.njit(cache=True, nogil=True)
+def _blur_maps(depth, fisheye, fx, fy, cx, cy, M, b, map_u, map_v):
+    """Where pixel q samples the mid-exposure image at one sub-exposure time: q - f(q), f the
+    flow of the scene point at q (planar depth; sky at 1e6 m along the ray) into the camera
+    p_k = M p + b; :func:`_unproject` and :func:`_project` per pixel, in one pass."""
+    h, w = depth.shape
+    for v in range(h):
+        for u in range(w):
+            mx, my = (u - cx) / fx, (v - cy) / fy
+            if fisheye:
+                theta = np.hypot(mx, my)
+                s = np.sin(theta) / theta if theta > 1e-12 else 1.0
+                zr = max(np.cos(theta), 1e-6)  # planar z = 1
+                rx, ry, rz = mx * s / zr, my * s / zr, np.cos(theta) / zr
+            else:
+                rx, ry, rz = mx, my, 1.0
+            z = depth[v, u]
+            if not (np.isfinite(z) and z > 0):
+                z = 1e6
+            px, py, pz = rx * z, ry * z, rz * z
+            x = M[0, 0] * px + M[0, 1] * py + M[0, 2] * pz + b[0]
+            y = M[1, 0] * px + M[1, 1] * py + M[1, 2] * pz + b[1]
+            zz = M[2, 0] * px + M[2, 1] * py + M[2, 2] * pz + b[2]
+            if fisheye:
+                r = np.hypot(x, y)
+                theta = np.arctan2(r, zz)
+                scale = theta / max(r, 1e-12) if r > 1e-12 else 1.0 / max(zz, 1e-12)
+            else:
+                scale = 1.0 / (zz if zz > 1e-9 else 1e-9)
+            map_u[v, u] = 2.0 * u - (fx * x * scale + cx)
+            map_v[v, u] = 2.0 * v - (fy * y * scale + cy)
+
+
 def motion_blur(image: np.ndarray, depth: np.ndarray, cam, T_w_c: np.ndarray,
                 poses: np.ndarray) -> np.ndarray:
     """Average of the image seen from the sub-exposure poses ``poses`` (K, 4, 4) ``T_w_c``.
@@ -136,18 +170,19 @@ def motion_blur(image: np.ndarray, depth: np.ndarray, cam, T_w_c: np.ndarray,
     """
     if len(poses) <= 1:
         return image
-    shape = depth.shape
-    p_c = _unproject(cam, depth)
-    p_w = p_c @ T_w_c[:3, :3].T + T_w_c[:3, 3]
-    v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float32)
+    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    map_u = np.empty(depth.shape, np.float32)
+    map_v = np.empty(depth.shape, np.float32)
     acc = np.zeros_like(image, dtype=np.float32)
     src = np.ascontiguousarray(image, dtype=np.float32)
     for T in poses:
         R, t = T[:3, :3], T[:3, 3]
-        q = _project(cam, (p_w - t) @ R)  # R^T (p - t) for row vectors
-        fx = (q[..., 0] - u).astype(np.float32)
-        fy = (q[..., 1] - v).astype(np.float32)
-        acc += cv2.remap(src, u - fx, v - fy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        # p_k = R^T (R_mid p + t_mid - t)
+        M = np.ascontiguousarray(R.T @ T_w_c[:3, :3], dtype=np.float64)
+        b = np.ascontiguousarray(R.T @ (T_w_c[:3, 3] - t), dtype=np.float64)
+        _blur_maps(depth, cam.model != "pinhole", float(cam.fx), float(cam.fy), float(cam.cx),
+                   float(cam.cy), M, b, map_u, map_v)
+        acc += cv2.remap(src, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     return acc / len(poses)
 
 

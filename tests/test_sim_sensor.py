@@ -1,4 +1,4 @@
-"""Camera sensor model (pure numpy, no bpy): noise statistics against the configured
+"""Camera sensor model (numpy and numba, no bpy): noise statistics against the configured
 electronics, fixed pattern, auto exposure, vignetting, motion blur against an independent
 box filter; Mars terrain appearance statistics (Golombek-Rapp rocks, crater sizes, ripples);
 validation of the [sensor] table."""
@@ -101,6 +101,36 @@ def test_vignetting_corner_and_centre():
     assert v[0, 0] == pytest.approx(0.6, rel=1e-6)
     assert v[120, 160] == pytest.approx(1.0, abs=1e-4)
     assert np.all(np.diff(v[120, 160:]) <= 0)  # falls off monotonically
+
+
+@pytest.mark.parametrize("model", ["pinhole", "kb4"])
+def test_blur_sampling_maps_follow_the_scene_points_through_the_camera_models(model):
+    """The one-pass kernel's sampling maps q - f(q) equal those of the vectorised camera
+    model (unproject at the planar depth, move into the sub-exposure camera, project), sky
+    pixels included, for a turned and moved camera."""
+    from scipy.spatial.transform import Rotation
+
+    from simulation.sensor import _blur_maps, _project, _unproject
+
+    cam = dataclasses.replace(CAM, model=model)
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(2.0, 30.0, (240, 320)).astype(np.float32)
+    depth[:20] = np.inf  # sky
+    T_mid, T_k = np.eye(4), np.eye(4)
+    T_mid[:3, :3] = Rotation.from_rotvec([0.1, -0.2, 0.05]).as_matrix()
+    T_mid[:3, 3] = [1.0, 2.0, 3.0]
+    T_k[:3, :3] = T_mid[:3, :3] @ Rotation.from_rotvec([0.004, 0.006, -0.003]).as_matrix()
+    T_k[:3, 3] = T_mid[:3, 3] + [0.05, -0.02, 0.03]
+    p_w = _unproject(cam, depth) @ T_mid[:3, :3].T + T_mid[:3, 3]
+    q = _project(cam, (p_w - T_k[:3, 3]) @ T_k[:3, :3])
+    v, u = np.mgrid[0:240, 0:320]
+    map_u, map_v = np.empty((240, 320), np.float32), np.empty((240, 320), np.float32)
+    M = T_k[:3, :3].T @ T_mid[:3, :3]
+    b = T_k[:3, :3].T @ (T_mid[:3, 3] - T_k[:3, 3])
+    _blur_maps(depth, model != "pinhole", cam.fx, cam.fy, cam.cx, cam.cy, M, b, map_u, map_v)
+    assert np.abs(q[..., 0] - u).max() > 1.0  # the camera moved: a real flow
+    np.testing.assert_allclose(map_u, 2 * u - q[..., 0], atol=1e-3)
+    np.testing.assert_allclose(map_v, 2 * v - q[..., 1], atol=1e-3)
 
 
 def test_motion_blur_of_a_sideways_move_is_a_box_filter():
