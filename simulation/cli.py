@@ -108,6 +108,9 @@ def cmd_render(args: argparse.Namespace, argv: list[str]) -> int:
     summary = render_run(plan, writer, frames, progress)
     n, wall = summary["rendered"], summary.get("wall_seconds")
     mean = f", {wall / n:.2f} s/frame" if n and wall else ""
+    if n > 1 and wall:  # the first frame also builds Cycles' BVH
+        first = summary["first_render_seconds"]
+        mean += f" ({(wall - first) / (n - 1):.2f} after the first, which took {first:.1f} s)"
     print(f"{scenario.name}: rendered {summary['rendered']} frames, skipped "
           f"{summary['skipped']} finished ones{mean} -> {args.out}", file=sys.stderr)
     return 130 if summary.get("interrupted") else 0

@@ -87,8 +87,9 @@ def render_run(plan: RunPlan, writer: RunWriter, frame_range: range,
                progress: Callable | None = None, seed_offset: int = 0) -> dict:
     """Render the unfinished frames of ``frame_range``; returns a small summary dict:
     ``rendered``, ``skipped``, ``seconds`` (per frame: its render plus its sensor model, as
-    ``render_seconds`` in the manifest) and ``wall_seconds`` (the frame loop, which overlaps
-    a frame's sensor model and files with the next frame's render).
+    ``render_seconds`` in the manifest), ``wall_seconds`` (the frame loop, which overlaps
+    a frame's sensor model and files with the next frame's render) and
+    ``first_render_seconds`` (Cycles builds its BVH in the first render).
 
     ``progress(iterable, total)`` wraps the frame loop (e.g. tqdm). Finished frames are
     skipped; :meth:`RunWriter.finish` runs even when interrupted.
@@ -142,6 +143,7 @@ def render_run(plan: RunPlan, writer: RunWriter, frame_range: range,
                     t = time.perf_counter()
                     rgb, depth = renderer.render(plan.poses[i], motion)
                     seconds = time.perf_counter() - t
+                    summary.setdefault("first_render_seconds", seconds)  # builds the BVH
                     if pending is not None:
                         previous, pending = pending, None
                         previous.result()  # a failure of the previous frame stops the run

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 
 import cv2
 import numpy as np
@@ -122,7 +123,14 @@ def test_tiny_render_through_the_cli(tmp_path, capsys):
     toml = _tiny_toml(tmp_path, 0.1)
     out = tmp_path / "run"
     assert cli.main(["render", str(toml), "--out", str(out), "--quiet"]) == 0
-    capsys.readouterr()
+    message = capsys.readouterr().err
+    n_frames = int(message.split("rendered ")[1].split()[0])
+    total, steady = (float(x) for x in
+                     re.findall(r"([\d.]+) s/frame \(([\d.]+) after", message)[0])
+    first = float(re.search(r"first, which took ([\d.]+) s", message).group(1))
+    assert n_frames > 1  # the mean splits into the first frame and the others (rounded):
+    assert total * n_frames == pytest.approx(first + steady * (n_frames - 1),
+                                             abs=0.01 * n_frames + 0.05)
     plan = make_plan(load_scenario(toml))
     stamps, names = read_euroc_image_list(out / "mav0" / "cam0" / "data.csv")
     assert len(names) == 3 and list(stamps) == [0, 50_000_000, 100_000_000]
