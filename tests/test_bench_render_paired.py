@@ -43,16 +43,16 @@ def test_one_tree_against_itself_renders_identical_images(tmp_path, capsys):
     out = capsys.readouterr().out
     assert out.count("round ") == 2 and "B / A over 4 paired frames" in out
     assert "images: identical" in out
-    # a tree whose material doubles the sky term renders other images, and says so
+    # a tree whose material brightens the sky term renders other images, and says so
     other = tmp_path / "tree"
     shutil.copytree(ROOT / "simulation", other / "simulation")
     (other / "granite").symlink_to(ROOT / "granite")
     (other / "scenarios").symlink_to(ROOT / "scenarios")
     material = other / "simulation" / "terrain" / "material.py"
     text = material.read_text()
-    assert 'emit.inputs["Strength"].default_value = 1.0' in text
-    material.write_text(text.replace('emit.inputs["Strength"].default_value = 1.0',
-                                     'emit.inputs["Strength"].default_value = 2.0'))
+    assert 'one_plus.inputs[1].default_value = 1.0' in text
+    material.write_text(text.replace('one_plus.inputs[1].default_value = 1.0',
+                                     'one_plus.inputs[1].default_value = 2.0'))
     assert bench.main(["--tree-a", str(ROOT), "--tree-b", str(other), "--scenario", str(toml),
                        "--size", "64x48", "--frames", "0", "--repeats", "1",
                        "--rounds", "1"]) == 0
