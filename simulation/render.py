@@ -204,6 +204,14 @@ def _compositor(scene, scratch: Path):
     tree.links.new(layers.outputs["Depth"], out.inputs["depth"])
 
 
+def _memory_backed_dir() -> str | None:
+    """/dev/shm when it is a writable directory (Linux tmpfs: the per-frame EXR files of the
+    compositor never touch a disk; 5 ms per 640x480 frame less than under /tmp on this
+    machine), else None (the system's temporary directory)."""
+    shm = "/dev/shm"
+    return shm if os.path.isdir(shm) and os.access(shm, os.W_OK | os.X_OK) else None
+
+
 def set_camera_pose(cam_obj, T_w_c: np.ndarray) -> None:
     """Place the camera at the CV pose ``T_w_c``."""
     M = np.asarray(T_w_c, dtype=np.float64) @ CV_TO_BLENDER
@@ -226,7 +234,7 @@ class Renderer:
         self.width, self.height = cam.width, cam.height
         configure_cycles(self.scene, scenario.render, cam.width, cam.height, scenario.seed)
         self.camera = make_camera(self.scene, cam)
-        self.scratch = Path(tempfile.mkdtemp(prefix="granite-sim-"))
+        self.scratch = Path(tempfile.mkdtemp(prefix="granite-sim-", dir=_memory_backed_dir()))
         _compositor(self.scene, self.scratch)
         self._planar = None
         if cam.model == "kb4":
