@@ -531,3 +531,26 @@ def test_the_sun_without_multiple_importance_sampling_lights_the_same():
     assert rgb.max() > 0.01
     difference = np.abs(rgb - rgb_mis).max()
     assert 0 < difference < 1e-3 * rgb.max()  # > 0: the switch reached Cycles
+
+
+def test_without_texture_contrast_the_albedo_is_the_base_colour():
+    """``texture_contrast = 0`` takes its own branch (albedo = base colour, no gain); the
+    gain's offset is L (1 - c) / 2c, so a tiny contrast must render nearly the same image:
+    a wrong offset (say a factor 2) would change the albedo by about half."""
+    from simulation.plan import make_plan
+    from simulation.render import Renderer
+    from simulation.terrain.scene import build_world
+
+    camera = {"width": 64, "height": 48, "fx": 48.0, "fy": 48.0, "cx": 31.5, "cy": 23.5}
+    images = {}
+    for contrast in (0.0, 1e-4, 0.55):
+        s = _scenario(camera, render={"samples": 1},
+                      terrain=dict(SMALL_TERRAIN, texture_contrast=contrast))
+        plan = make_plan(s)
+        build_world(s, plan.model)
+        with Renderer(s) as renderer:
+            images[contrast], _ = renderer.render(plan.poses[0])
+    peak = images[0.0].max()
+    assert peak > 0.01
+    np.testing.assert_allclose(images[1e-4], images[0.0], rtol=0, atol=2e-3 * peak)
+    assert np.abs(images[0.55] - images[0.0]).max() > 0.05 * peak  # contrast shows

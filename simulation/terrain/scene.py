@@ -170,12 +170,17 @@ def _no_ripples(cfg, xy: np.ndarray):
     return np.zeros((len(xy), 2), np.float32), np.zeros(len(xy), np.float32)
 
 
+def _rock_colors(cfg, rocks, seed: int) -> np.ndarray:
+    """Seeded linear base colour per rock (at least one row)."""
+    return rock_base_color(cfg, np.random.default_rng([seed, 0x2C0]), max(len(rocks), 1))
+
+
 def _merged_rock_surface(cfg, protos, rocks, seed: int) -> _Surface | None:
     """All rocks as one flat-shaded surface, one base colour per rock (None: no rocks)."""
     verts, tris, owner = merged_rocks(protos, rocks)
     if not len(verts):
         return None
-    colors = rock_base_color(cfg, np.random.default_rng([seed, 0x2C0]), max(len(rocks), 1))
+    colors = _rock_colors(cfg, rocks, seed)
     xy = rock_projection(verts)
     return _Surface(verts, tris, False,
                     [tile_uv(xy, s, k) for k, s in enumerate(cfg.texture_scales)],
@@ -185,7 +190,7 @@ def _merged_rock_surface(cfg, protos, rocks, seed: int) -> _Surface | None:
 def _rock_instances(coll, cfg, protos, rocks, material, seed: int) -> None:
     """One object per rock sharing its prototype's mesh (Blender / Cycles instancing); the
     texture follows the prototype's local frame, one colour per prototype."""
-    colors = rock_base_color(cfg, np.random.default_rng([seed, 0x2C0]), max(len(rocks), 1))
+    colors = _rock_colors(cfg, rocks, seed)
     meshes = []
     for k, (v, f) in enumerate(protos):
         mesh = _mesh(f"rock_proto_{k}", v, f, smooth=False)
